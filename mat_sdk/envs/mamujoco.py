@@ -1,0 +1,101 @@
+"""Gymnasium-Robotics' MaMuJoCo (`mamujoco_v1`) behind the team interface.
+
+So results on e.g. `mamujoco:HalfCheetah-6x1` compare directly with published MA-MuJoCo
+numbers (the paper's MAT reaches about 9,000 there). Defaults follow the paper's set-up:
+`agent_obsk=0` and a one-hot agent id appended to every observation.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+
+import numpy as np
+
+PREFIX = "mamujoco:"
+_ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
+
+
+class MaMuJoCoTeam:
+    """A MaMuJoCo scenario with the array API of `RobotTeam` (obs padded to one size)."""
+
+    def __init__(
+        self,
+        env_id: str,
+        faults: Mapping[str, str] | None = None,
+        *,
+        seed: int | None = None,
+        agent_id: bool | None = None,
+        agent_obsk: int = 0,
+        episode_limit: int | None = None,
+    ):
+        from gymnasium_robotics import mamujoco_v1
+
+        match = _ID.match(env_id)
+        if not match:
+            raise ValueError(f"MaMuJoCo ids look like 'mamujoco:HalfCheetah-6x1', got {env_id!r}")
+        scenario, conf = match.groups()
+        self.env_id = env_id
+        self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
+        self.possible_agents = list(self._env.possible_agents)
+        self.agents = self.possible_agents
+        self.n_agents = len(self.agents)
+        self.agent_id = True if agent_id is None else bool(agent_id)
+        self.act_dims = np.array([self._env.action_space(a).shape[0] for a in self.agents])
+        self.act_dim = int(self.act_dims.max())
+        self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.agents]
+        self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
+        self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
+        spec_limit = self._env.single_agent_env.spec.max_episode_steps
+        self.episode_limit = int(episode_limit or spec_limit or 1000)
+        self._zeroed = set()
+        for name, mode in (faults or {}).items():
+            if name not in self.agents or mode != "zero":
+                raise ValueError(
+                    f"MaMuJoCo faults support '<agent>=zero' only (agents: {self.agents}); "
+                    f"got {name}={mode}"
+                )
+            self._zeroed.add(self.agents.index(name))
+        self._seed = seed
+        self._steps = 0
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None  # the first reset takes the constructor's seed
+        obs, _ = self._env.reset(seed=seed)
+        self._steps = 0
+        return self._pack(obs)
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        actions = np.clip(np.asarray(actions, dtype=np.float64), -1.0, 1.0)
+        if actions.shape != (self.n_agents, self.act_dim) or not np.isfinite(actions).all():
+            raise ValueError(
+                f"actions must be finite with shape ({self.n_agents}, {self.act_dim}), "
+                f"got {actions.shape}"
+            )
+        per_agent = {
+            name: (0.0 if row in self._zeroed else 1.0) * actions[row, : self.act_dims[row]]
+            for row, name in enumerate(self.agents)
+        }
+        obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
+        self._steps += 1
+        first = self.agents[0]
+        truncated = bool(truncations[first]) or self._steps >= self.episode_limit
+        return self._pack(obs), float(rewards[first]), bool(terminations[first]), truncated
+
+    def state(self) -> np.ndarray:
+        return np.asarray(self._env.state(), dtype=np.float32)
+
+    def render(self) -> np.ndarray:
+        raise RuntimeError("rendering MaMuJoCo envs is not supported; use a mat_sdk robot id")
+
+    def close(self) -> None:
+        self._env.close()
+
+    def _pack(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        packed = np.zeros((self.n_agents, self.obs_dim), dtype=np.float32)
+        for row, name in enumerate(self.agents):
+            packed[row, : self._raw_obs_dims[row]] = obs[name]
+            if self.agent_id:
+                packed[row, -self.n_agents + row] = 1.0
+        return packed

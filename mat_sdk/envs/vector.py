@@ -1,0 +1,267 @@
+"""E copies of a team stepped as arrays, in this process or in worker processes.
+
+Workers share every array with the parent through shared memory: per step only a one-word
+command crosses the pipe, never observations. Copy i is seeded with `seed + i` and owns its
+random stream, so the same seed gives the same trajectories whatever the worker count.
+Finished episodes reset automatically; the last observation of the finished episode is in
+`info["final_obs"]` (for bootstrapping a truncated episode).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import multiprocessing as mp
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+_FIELDS = {  # name: (shape after [num_envs], dtype)
+    "actions": (("n", "act"), np.float64),
+    "obs": (("n", "obs"), np.float32),
+    "final_obs": (("n", "obs"), np.float32),
+    "state": (("state",), np.float32),
+    "reward": ((), np.float64),
+    "terminated": ((), np.bool_),
+    "truncated": ((), np.bool_),
+    "episode_return": ((), np.float64),
+    "episode_length": ((), np.int64),
+}
+
+
+class _Buffers:
+    """The step's arrays `[num_envs, ...]`, optionally in shared memory."""
+
+    def __init__(self, sizes: dict[str, int], num_envs: int, raw: dict | None = None, shared=False):
+        self.sizes, self.num_envs = sizes, num_envs
+        self.raw = raw if raw is not None else {}
+        for name, (dims, dtype) in _FIELDS.items():
+            shape = (num_envs, *(sizes[d] for d in dims))
+            if raw is None and shared:
+                nbytes = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
+                self.raw[name] = mp.RawArray("b", nbytes)
+            if name in self.raw:
+                array = np.frombuffer(self.raw[name], dtype=dtype, count=int(np.prod(shape)))
+                setattr(self, name, array.reshape(shape))
+            else:
+                setattr(self, name, np.zeros(shape, dtype))
+
+
+class _EnvSlice:
+    """Steps copies `[start, start + len(teams))` of the buffers; autoresets finished ones."""
+
+    def __init__(self, teams: list, start: int, buffers: _Buffers):
+        self.teams, self.start, self.buffers = teams, start, buffers
+        self._returns = np.zeros(len(teams))
+        self._lengths = np.zeros(len(teams), dtype=np.int64)
+
+    def reset(self, seeds: list[int | None]) -> None:
+        for k, (team, seed) in enumerate(zip(self.teams, seeds, strict=True)):
+            self.buffers.obs[self.start + k] = team.reset(seed=seed)
+        self._returns[:] = 0
+        self._lengths[:] = 0
+
+    def step(self) -> None:
+        b = self.buffers
+        for k, team in enumerate(self.teams):
+            i = self.start + k
+            obs, reward, terminated, truncated = team.step(b.actions[i])
+            self._returns[k] += reward
+            self._lengths[k] += 1
+            b.reward[i], b.terminated[i], b.truncated[i] = reward, terminated, truncated
+            if terminated or truncated:
+                b.final_obs[i] = obs
+                b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
+                self._returns[k], self._lengths[k] = 0.0, 0
+                obs = team.reset()
+            else:
+                b.episode_return[i], b.episode_length[i] = np.nan, 0
+            b.obs[i] = obs
+
+    def state(self) -> None:
+        for k, team in enumerate(self.teams):
+            self.buffers.state[self.start + k] = team.state()
+
+
+def _worker(
+    conn: Connection, make_team: Callable, seeds: list[int], start: int, sizes, num_envs, raw
+):
+    try:
+        teams = [make_team(seed) for seed in seeds]
+        envs = _EnvSlice(teams, start, _Buffers(sizes, num_envs, raw=raw))
+        conn.send(("ok", None))
+        while True:
+            command, argument = conn.recv()
+            if command == "close":
+                break
+            getattr(envs, command)(*argument)
+            conn.send(("ok", None))
+    except KeyboardInterrupt:
+        pass
+    except Exception:
+        conn.send(("error", traceback.format_exc()))
+    finally:
+        conn.close()
+
+
+_TEAM_ATTRIBUTES = (
+    "env_id",
+    "agents",
+    "n_agents",
+    "obs_dim",
+    "act_dim",
+    "act_dims",
+    "state_dim",
+    "episode_limit",
+)
+
+
+@dataclass(frozen=True)
+class TeamFactory:
+    """A picklable recipe for one team, so worker processes can build their own copies."""
+
+    build: Callable[..., Any]
+    kwargs: dict
+
+    def __call__(self, seed: int | None) -> Any:
+        return self.build(seed=seed, **self.kwargs)
+
+
+class VecTeam:
+    """`num_envs` copies of a team: `obs [E, n, obs_dim]`, `reward [E]`, `terminated [E]`...
+
+    `workers=0` steps every copy in this process; `workers=W` splits them over W processes.
+    """
+
+    def __init__(self, make_team: TeamFactory, num_envs: int, workers: int = 0, seed: int = 0):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if not 0 <= workers <= num_envs:
+            raise ValueError(f"workers must be in [0, num_envs={num_envs}], got {workers}")
+        self.num_envs, self.workers, self.seed = num_envs, workers, seed
+        probe = make_team(seed)
+        for name in _TEAM_ATTRIBUTES:
+            setattr(self, name, getattr(probe, name))
+        sizes = {
+            "n": self.n_agents,
+            "obs": self.obs_dim,
+            "act": self.act_dim,
+            "state": self.state_dim,
+        }
+        self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
+        seeds = [seed + i for i in range(num_envs)]
+        self._pipes: list[Connection] = []
+        self._processes: list[mp.Process] = []
+        if workers == 0:
+            teams = [probe, *(make_team(s) for s in seeds[1:])]
+            self._local = _EnvSlice(teams, 0, self._buffers)
+        else:
+            context = mp.get_context("spawn")
+            bounds = np.linspace(0, num_envs, workers + 1).astype(int)
+            for lo, hi in itertools.pairwise(bounds):
+                parent, child = context.Pipe()
+                process = context.Process(
+                    target=_worker,
+                    args=(
+                        child,
+                        make_team,
+                        seeds[lo:hi],
+                        int(lo),
+                        sizes,
+                        num_envs,
+                        self._buffers.raw,
+                    ),
+                    daemon=True,
+                )
+                process.start()
+                child.close()
+                self._pipes.append(parent)
+                self._processes.append(process)
+            self._wait()
+        self._slices = np.linspace(0, num_envs, max(workers, 1) + 1).astype(int)
+        self._closed = False
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Reset every copy; with a seed, copy i restarts its random stream at `seed + i`."""
+        seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
+        self._run("reset", [(seeds[lo:hi],) for lo, hi in itertools.pairwise(self._slices)])
+        return self._buffers.obs.copy()
+
+    def step(self, actions: np.ndarray):
+        """Step every copy; returns obs, reward, terminated, truncated, info (all arrays)."""
+        actions = np.asarray(actions, dtype=np.float64)
+        expected = (self.num_envs, self.n_agents, self.act_dim)
+        if actions.shape != expected:
+            raise ValueError(
+                f"actions have shape {actions.shape}, expected (num_envs, n_agents, act_dim) = "
+                f"{expected}"
+            )
+        finite = np.isfinite(actions).all(axis=2)
+        if not finite.all():
+            env, agent = np.argwhere(~finite)[0]
+            raise ValueError(f"env {env}, {self.agents[agent]}: action contains NaN or inf")
+        b = self._buffers
+        b.actions[:] = actions
+        self._run("step", [()] * max(self.workers, 1))
+        done = b.terminated | b.truncated
+        info = {
+            "final_obs": b.final_obs.copy(),
+            "episode_return": b.episode_return.copy(),
+            "episode_length": b.episode_length.copy(),
+            "done": done,
+        }
+        return b.obs.copy(), b.reward.copy(), b.terminated.copy(), b.truncated.copy(), info
+
+    def state(self) -> np.ndarray:
+        self._run("state", [()] * max(self.workers, 1))
+        return self._buffers.state.copy()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for pipe in self._pipes:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                pipe.send(("close", ()))
+        for process in self._processes:
+            process.join(timeout=5)
+            if process.is_alive():
+                process.terminate()
+
+    def __enter__(self) -> VecTeam:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if hasattr(self, "_closed"):
+            self.close()
+
+    def _run(self, command: str, arguments: list) -> None:
+        if self._closed:
+            raise RuntimeError("this vectorised env is closed")
+        """Run `_EnvSlice.<command>(*arguments[k])` on every slice k and wait for all."""
+        if self.workers == 0:
+            getattr(self._local, command)(*arguments[0])
+            return
+        for pipe, argument in zip(self._pipes, arguments, strict=True):
+            pipe.send((command, argument))
+        self._wait()
+
+    def _wait(self) -> None:
+        errors = []
+        for pipe in self._pipes:
+            try:
+                status, detail = pipe.recv()
+            except EOFError:
+                status, detail = "error", "a worker process died"
+            if status == "error":
+                errors.append(detail)
+        if errors:
+            self.close()
+            raise RuntimeError("env worker failed:\n" + errors[0])
