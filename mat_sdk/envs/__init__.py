@@ -20,8 +20,23 @@ are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueE
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Mapping
 from typing import Any
+
+# Headless by default: EGL renders without a display. Set MUJOCO_GL yourself to override.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+class _QuietSuiteModels(logging.Filter):
+    """dm_control's own XML uses a deprecated MuJoCo attribute; users cannot act on that."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "settotalmass" not in record.getMessage()
+
+
+logging.getLogger("absl").addFilter(_QuietSuiteModels())
 
 from mat_sdk.envs.mamujoco import PREFIX as _MAMUJOCO
 from mat_sdk.envs.mamujoco import MaMuJoCoTeam

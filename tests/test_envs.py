@@ -1,0 +1,278 @@
+"""Multi-agent robots: PettingZoo API, decomposition, seeding, faults, bad input."""
+
+import mujoco
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+from mat_sdk import envs
+from mat_sdk.envs.robots import spec_for
+
+ROBOT_IDS = [
+    "cheetah-6x1",
+    "cheetah-2x3",
+    "walker-6x1",
+    "walker-2x3",
+    "hopper-4x1",
+    "hopper-2x2",
+    "quadruped-4x3",
+    "humanoid-limbs",
+    "swimmer-3",
+    "swimmer-6",
+]
+
+
+@pytest.mark.parametrize("env_id", ROBOT_IDS)
+def test_parallel_api(env_id):
+    parallel_api_test(envs.make(env_id, seed=0), num_cycles=40)
+
+
+def test_mamujoco_parallel_api_and_vector():
+    parallel_api_test(envs.make("mamujoco:HalfCheetah-6x1", seed=0), num_cycles=20)
+    with envs.make_vec("mamujoco:HalfCheetah-6x1", num_envs=2, seed=0) as vec:
+        obs = vec.reset()
+        assert obs.shape == (2, 6, 13)  # the paper's 13: own 2 + root 5 + one-hot id 6
+        obs, reward, *_ = vec.step(np.zeros((2, 6, 1)))
+        assert reward.shape == (2,) and np.isfinite(obs).all()
+
+
+def _driven_dofs(team, row: int, dim: int) -> set[int]:
+    """DOFs that one action entry pushes, read from MuJoCo, not from our decomposition.
+
+    First which actuators the entry moves (their ctrl changes), then which DOFs MuJoCo's
+    transmission (the actuator moment) connects those actuators to.
+    """
+    data, model = team.physics.data, team.physics.model
+    ctrls = []
+    for value in (-0.7, 0.7):
+        team.reset(seed=0)
+        actions = np.zeros((team.n_agents, team.act_dim))
+        actions[row, dim] = value
+        team.step(actions)
+        ctrls.append(data.ctrl.copy())
+    team.reset(seed=0)
+    mujoco.mj_forward(model.ptr, data.ptr)  # fills MuJoCo's sparse actuator moments
+    dofs = set()
+    for actuator in np.flatnonzero(ctrls[0] != ctrls[1]):
+        start, count = data.moment_rowadr[actuator], data.moment_rownnz[actuator]
+        dofs |= set(data.moment_colind[start : start + count].tolist())
+    return dofs
+
+
+@pytest.mark.parametrize("env_id", ROBOT_IDS)
+def test_each_agent_observes_the_joints_it_drives(env_id):
+    team = envs.make_team(env_id, seed=0)
+    model = team.physics.model
+    for row in range(team.n_agents):
+        for dim in range(team.act_dims[row]):
+            dofs = _driven_dofs(team, row, dim)
+            assert dofs, f"{env_id} agent {row} action {dim} drives nothing"
+            for dof in dofs:
+                team.reset(seed=0)
+                before = team.observe()[row].copy()
+                joint = model.dof_jntid[dof]
+                team.physics.data.qpos[model.jnt_qposadr[joint]] += 0.1
+                after_qpos = team.observe()[row].copy()
+                team.physics.data.qvel[dof] += 0.3
+                after_qvel = team.observe()[row]
+                name = model.id2name(joint, "joint")
+                assert not np.allclose(before, after_qpos), (
+                    f"{env_id}: agent {row} blind to {name} qpos"
+                )
+                assert not np.allclose(after_qpos, after_qvel), (
+                    f"{env_id}: agent {row} blind to {name} qvel"
+                )
+
+
+def test_same_seed_same_episode_and_other_seed_differs():
+    def episode(seed):
+        env = envs.make("walker-2x3", seed=seed)
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(0)
+        trace = [np.concatenate(list(obs.values()))]
+        for _ in range(30):
+            obs, rewards, *_ = env.step({a: rng.uniform(-1, 1, 3) for a in env.agents})
+            trace.append(np.concatenate([*obs.values(), list(rewards.values())]))
+        return np.concatenate(trace)
+
+    assert np.array_equal(episode(7), episode(7))
+    assert not np.allclose(episode(7), episode(8))
+
+
+def test_obs_float32_state_and_shared_reward():
+    env = envs.make("cheetah-6x1", seed=0)
+    obs, _ = env.reset(seed=0)
+    assert all(o.dtype == np.float32 and o.shape == (17,) for o in obs.values())
+    assert env.state().shape == env.state_space.shape and env.state().dtype == np.float32
+    _, rewards, *_ = env.step({a: np.ones(1) for a in env.agents})
+    assert len(set(rewards.values())) == 1
+
+
+def test_one_hot_agent_id_and_swimmer_obs_size_independent_of_n():
+    obs, _ = envs.make("hopper-4x1").reset(seed=0)
+    ids = np.stack([o[-4:] for o in obs.values()])
+    assert np.array_equal(ids, np.eye(4))
+    sizes = {envs.make_team(f"swimmer-{n}").obs_dim for n in (3, 4, 7, 12)}
+    assert len(sizes) == 1
+    assert not envs.make_team("swimmer-5").agent_id  # variable-count family: no one-hot id
+    assert envs.make_team("hopper-4x1", agent_id=False).obs_dim == 11
+
+
+def test_fast_reward_equals_the_suite_task_reward():
+    team = envs.make_team("cheetah-6x1", seed=0)
+    team.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        _, reward, *_ = team.step(rng.uniform(-1, 1, (6, 1)))
+        assert reward == pytest.approx(team._task.get_reward(team.physics), abs=1e-12)
+
+
+def test_truncation_at_configured_episode_limit():
+    env = envs.make("hopper-2x2", episode_limit=5)
+    env.reset(seed=0)
+    for step in range(5):
+        _, _, terminated, truncated, _ = env.step({a: np.zeros(2) for a in env.agents})
+        assert all(truncated.values()) == (step == 4)
+        assert not any(terminated.values())
+    assert env.agents == []
+
+
+@pytest.mark.parametrize(
+    ("actions", "message"),
+    [
+        ({"agent_0": [0.0]}, r"no action for agent\(s\) \['agent_1'"),
+        ({**{f"agent_{i}": [0.0] for i in range(6)}, "agent_9": [0.0]}, "unknown agent"),
+        (
+            {**{f"agent_{i}": [0.0] for i in range(6)}, "agent_3": [0.0, 1.0]},
+            r"agent_3: action has shape \(2,\)",
+        ),
+        (
+            {**{f"agent_{i}": [0.0] for i in range(6)}, "agent_2": [np.nan]},
+            "agent_2: action contains NaN",
+        ),
+        (
+            {**{f"agent_{i}": [0.0] for i in range(6)}, "agent_4": [np.inf]},
+            "agent_4: action contains NaN or inf",
+        ),
+    ],
+)
+def test_bad_actions_raise_value_error_naming_the_agent(actions, message):
+    env = envs.make("cheetah-6x1")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=message):
+        env.step(actions)
+
+
+def test_out_of_range_actions_are_clipped():
+    results = []
+    for value in (1.0, 7.5):
+        team = envs.make_team("cheetah-6x1", seed=0)
+        team.reset(seed=0)
+        results.append(team.step(np.full((6, 1), value))[0])
+    assert np.array_equal(results[0], results[1])
+
+
+def test_unknown_env_id_lists_valid_ids():
+    with pytest.raises(
+        ValueError, match="unknown environment id 'cheetah-9x9'.*cheetah-6x1.*swimmer-N"
+    ):
+        envs.make("cheetah-9x9")
+
+
+def test_zero_fault_silences_the_joint_and_keeps_the_agent():
+    team = envs.make_team("cheetah-6x1", faults={"bfoot": "zero"}, seed=0)
+    assert team.n_agents == 6
+    team.reset(seed=0)
+    team.step(np.ones((6, 1)))
+    ctrl = team.physics.named.data.ctrl
+    assert ctrl["bfoot"] == 0.0 and ctrl["bshin"] == 1.0
+
+
+def test_remove_fault_drops_the_agent_and_keeps_names_and_ids():
+    full = envs.make_team("cheetah-6x1")
+    team = envs.make_team("cheetah-6x1", faults={"agent_2": "remove"}, seed=0)
+    assert team.n_agents == 5 and team.agents == [
+        "agent_0",
+        "agent_1",
+        "agent_3",
+        "agent_4",
+        "agent_5",
+    ]
+    assert team.obs_dim == full.obs_dim
+    obs = team.reset(seed=0)
+    assert np.array_equal(obs[:, -6:], np.eye(6)[[0, 1, 3, 4, 5]])
+    team.step(np.ones((5, 1)))
+    assert team.physics.named.data.ctrl["bfoot"] == 0.0
+    by_joint = envs.make_team("cheetah-6x1", faults={"bfoot": "remove"})
+    assert by_joint.agents == team.agents
+
+
+def test_bad_faults_are_rejected_clearly():
+    with pytest.raises(ValueError, match="neither an agent nor an actuated joint.*bfoot"):
+        envs.make("cheetah-6x1", faults={"tail": "zero"})
+    with pytest.raises(ValueError, match="mode must be one of"):
+        envs.make("cheetah-6x1", faults={"bfoot": "wobble"})
+    with pytest.raises(ValueError, match="remove every agent"):
+        envs.make("cheetah-2x3", faults={"agent_0": "remove", "agent_1": "remove"})
+
+
+def test_quadruped_tendon_actuators_own_several_joints():
+    team = envs.make_team("quadruped-4x3")
+    assert team.joint_names(0) == [
+        "yaw_front_left",
+        "pitch_front_left",
+        "ankle_front_left",
+        "knee_front_left",
+    ]
+
+
+def test_vector_env_same_trajectories_whatever_the_worker_count():
+    def run(workers):
+        with envs.make_vec(
+            "hopper-4x1", num_envs=4, workers=workers, seed=3, episode_limit=12
+        ) as vec:
+            trace = [vec.reset()]
+            rng = np.random.default_rng(0)
+            returns = []
+            for _ in range(30):
+                obs, reward, _, _, info = vec.step(rng.uniform(-1, 1, (4, 4, 1)))
+                trace += [obs, reward[:, None, None].astype(np.float32)]
+                returns.append(info["episode_return"])
+            return np.concatenate([t.reshape(-1) for t in trace]), np.array(returns)
+
+    (local, local_returns), (one, _), (two, two_returns) = run(0), run(1), run(2)
+    assert np.array_equal(local, one) and np.array_equal(local, two)
+    np.testing.assert_array_equal(local_returns, two_returns)
+    finished = ~np.isnan(local_returns)
+    assert finished.sum() == 4 * 2  # every copy finished two 12-step episodes in 30 steps
+
+
+def test_vector_env_autoreset_reports_final_obs_and_episode_stats():
+    with envs.make_vec("cheetah-2x3", num_envs=3, seed=0, episode_limit=4) as vec:
+        obs = vec.reset()
+        for _ in range(4):
+            obs, _, _, truncated, info = vec.step(np.zeros((3, 2, 3)))
+        assert truncated.all() and (info["episode_length"] == 4).all()
+        assert not np.array_equal(info["final_obs"], obs)  # obs is already the next episode's
+        with pytest.raises(ValueError, match=r"env 1, agent_0: action contains NaN"):
+            bad = np.zeros((3, 2, 3))
+            bad[1, 0, 2] = np.nan
+            vec.step(bad)
+        with pytest.raises(ValueError, match="expected"):
+            vec.step(np.zeros((3, 2)))
+
+
+def test_render_returns_rgb_where_gl_exists():
+    env = envs.make("cheetah-6x1", render_mode="rgb_array")
+    env.reset(seed=0)
+    try:
+        frame = env.render()
+    except RuntimeError as error:
+        pytest.skip(f"no GL backend here: {error}")
+    assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8 and frame.std() > 0
+
+
+def test_swimmer_family_and_spec_errors():
+    assert len(spec_for("swimmer-11").groups) == 10
+    with pytest.raises(ValueError, match="N >= 3"):
+        spec_for("swimmer-2")
