@@ -12,24 +12,29 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 
-def time_per_call(fn: Callable[[], object], min_seconds: float = 0.5, repeats: int = 5) -> float:
-    """Median seconds per call over `repeats` runs of at least `min_seconds / repeats` each."""
-    fn()
-    calls = 1
-    while True:  # find how many calls fill one run
-        start = time.perf_counter()
-        for _ in range(calls):
+def compare(variants: dict[str, Callable[[], object]], seconds: float = 1.0, rounds: int = 9):
+    """Median seconds per call of each variant, measured in interleaved rounds.
+
+    Every round runs each variant once for about `seconds / rounds / len(variants)`, so slow
+    phases of a noisy machine hit all variants alike.
+    """
+    calls = {}
+    for name, fn in variants.items():
+        fn()
+        n, start = 1, time.perf_counter()
+        while time.perf_counter() - start < 0.02:
             fn()
-        if time.perf_counter() - start > min_seconds / repeats:
-            break
-        calls *= 2
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        runs.append((time.perf_counter() - start) / calls)
-    return float(np.median(runs))
+            n += 1
+        per_call = (time.perf_counter() - start) / n
+        calls[name] = max(1, int(seconds / rounds / len(variants) / per_call))
+    samples: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, fn in variants.items():
+            start = time.perf_counter()
+            for _ in range(calls[name]):
+                fn()
+            samples[name].append((time.perf_counter() - start) / calls[name])
+    return {name: float(np.median(times)) for name, times in samples.items()}
 
 
 def machine() -> str:

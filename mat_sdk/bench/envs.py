@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import multiprocessing as mp
-import time
 
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.bench import print_table, time_per_call
+from mat_sdk.bench import compare, print_table
 
 ROBOTS = (
     "cheetah-6x1",
@@ -28,13 +27,18 @@ def single_step_table(robots=ROBOTS, seconds: float = 1.0) -> list[dict]:
         team.reset(seed=0)
         rng = np.random.default_rng(0)
         actions = rng.uniform(-1, 1, (team.n_agents, team.act_dim))
-        substeps = team._substeps
-        bare = time_per_call(lambda p=team.physics, k=substeps: p.step(k), seconds)
-        ours = time_per_call(lambda t=team, a=actions: _step_or_reset(t, a), seconds)
         env = envs.make(env_id, seed=0)
         env.reset(seed=0)
         per_agent = {name: actions[i, : team.act_dims[i]] for i, name in enumerate(env.agents)}
-        pz = time_per_call(lambda e=env, a=per_agent: _pz_step_or_reset(e, a), seconds)
+        times = compare(
+            {
+                "bare": lambda p=team.physics, k=team.substeps: p.step(k),
+                "ours": lambda t=team, a=actions: _step_or_reset(t, a),
+                "pz": lambda e=env, a=per_agent: _pz_step_or_reset(e, a),
+            },
+            seconds,
+        )
+        bare, ours, pz = times["bare"], times["ours"], times["pz"]
         rows.append(
             {
                 "env": env_id,
@@ -60,56 +64,56 @@ def _pz_step_or_reset(env, actions) -> None:
     env.step(actions)
 
 
-def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, steps: int = 300) -> list[dict]:
-    """Env-steps per second for `num_envs` copies: in-process, 1 and 2 worker processes."""
-    rows, base = [], None
-    for workers in (0, 1, 2):
-        with envs.make_vec(env_id, num_envs, workers=workers, seed=0) as vec:
+def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float = 6.0):
+    """Env-steps per second for `num_envs` copies: in-process, 1 and 2 worker processes.
+
+    All three run side by side in interleaved rounds, together with the machine's own
+    ceiling: two equal CPU-bound jobs in two processes vs one after the other in one.
+    """
+    labels = {0: "in-process", 1: "1 worker process", 2: "2 worker processes"}
+    vecs = {w: envs.make_vec(env_id, num_envs, workers=w, seed=0) for w in labels}
+    pool = mp.get_context("spawn").Pool(2)
+    try:
+        shape = (num_envs, vecs[0].n_agents, vecs[0].act_dim)
+        actions = np.random.default_rng(0).uniform(-1, 1, shape)
+        for vec in vecs.values():
             vec.reset()
-            actions = np.random.default_rng(0).uniform(-1, 1, (num_envs, vec.n_agents, vec.act_dim))
-            for _ in range(20):
-                vec.step(actions)
-            start = time.perf_counter()
-            for _ in range(steps):
-                vec.step(actions)
-            rate = num_envs * steps / (time.perf_counter() - start)
-        base = base or rate
-        label = "in-process" if workers == 0 else f"{workers} worker process(es)"
-        rows.append(
-            {
-                "copies": f"{num_envs} x {env_id}",
-                "stepping": label,
-                "env-steps/s": f"{rate:,.0f}",
-                "vs in-process": f"{rate / base:.2f}x",
-            }
-        )
+        variants = {w: (lambda v=vec: v.step(actions)) for w, vec in vecs.items()}
+        work = 200_000
+        variants["serial"] = lambda: (_burn(work), _burn(work))
+        variants["parallel"] = lambda: pool.map(_burn, [work, work])
+        times = compare(variants, seconds, rounds=7)
+    finally:
+        pool.terminate()
+        for vec in vecs.values():
+            vec.close()
+    rows = [
+        {
+            "copies": f"{num_envs} x {env_id}",
+            "stepping": label,
+            "env-steps/s": f"{num_envs / times[w]:,.0f}",
+            "vs in-process": f"{times[0] / times[w]:.2f}x",
+        }
+        for w, label in labels.items()
+    ]
+    rows.append(
+        {
+            "copies": "2 equal pure-CPU jobs",
+            "stepping": "2 processes vs 1 (this machine's ceiling)",
+            "env-steps/s": "-",
+            "vs in-process": f"{times['serial'] / times['parallel']:.2f}x",
+        }
+    )
     return rows
 
 
-def _burn(iterations: int) -> float:
-    start = time.perf_counter()
+def _burn(iterations: int) -> int:
     total = 0
     for i in range(iterations):
         total += i
-    return time.perf_counter() - start
+    return total
 
 
-def parallel_ceiling(iterations: int = 5_000_000) -> float:
-    """How much faster two processes finish two equal CPU-bound jobs than one process does.
-
-    On a machine with two free cores this is ~2.0; on shared virtual CPUs it is lower, and no
-    worker scheme can beat it.
-    """
-    with mp.get_context("spawn").Pool(2) as pool:
-        pool.map(_burn, [1000, 1000])
-        start = time.perf_counter()
-        pool.map(_burn, [iterations, iterations])
-        parallel = time.perf_counter() - start
-    serial = _burn(iterations) + _burn(iterations)
-    return serial / parallel
-
-
-def main(seconds: float = 1.0, vector_steps: int = 300) -> None:
+def main(seconds: float = 1.0) -> None:
     print_table(single_step_table(seconds=seconds), "One control step, single process")
-    print_table(vector_table(steps=vector_steps), "Vectorised stepping")
-    print(f"This machine's ceiling for 2 processes (pure-CPU jobs): {parallel_ceiling():.2f}x\n")
+    print_table(vector_table(seconds=6 * seconds), "Vectorised stepping, side by side")

@@ -54,7 +54,7 @@ class RobotTeam:
         self.physics = self._env.physics
         self._task = self._env.task
         self._model, self._data = self.physics.model.ptr, self.physics.data.ptr
-        self._substeps = round(self._env.control_timestep() / self._model.opt.timestep)
+        self.substeps = round(self._env.control_timestep() / self._model.opt.timestep)
         default_limit = self._env._step_limit
         self.episode_limit = int(episode_limit or default_limit)
         if self.episode_limit < 1:
@@ -201,8 +201,8 @@ class RobotTeam:
         self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
         # dm_control's legacy step: positions and sensors are up to date for the reward.
         mujoco.mj_step2(self._model, self._data)
-        if self._substeps > 1:
-            mujoco.mj_step(self._model, self._data, self._substeps - 1)
+        if self.substeps > 1:
+            mujoco.mj_step(self._model, self._data, self.substeps - 1)
         mujoco.mj_step1(self._model, self._data)
         self._steps += 1
         reward = float(self._reward(self.physics))
