@@ -1,0 +1,400 @@
+"""Multi-Agent Transformer (Wen et al., 2022) and the baselines it is compared with.
+
+MAT: an encoder reads every agent's observation (unmasked self-attention, a value per
+agent); a decoder emits actions one agent at a time, each conditioned on the actions already
+chosen. Layer layout, initialisation and the policy's std follow the official code
+(`PAPER_NOTES.md`): post-LN blocks; the decoder's second attention takes its query from the
+encoder representation and its keys/values from the causal action stream.
+
+Rollouts decode with a KV cache (`decode_step`): each decoder block keeps two caches, one per
+attention that reads the action stream, so a control step costs O(n) decoder work.
+
+MAT-Dec shares MAT's encoder/critic but acts with one shared MLP per agent on its own
+observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All three expose
+`evaluate` (teacher-forced, for PPO) and `act` (sampling, for rollouts).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+ALGOS = ("mat", "mat-dec", "mappo")
+ACTION_TYPES = ("continuous", "discrete")
+UNAVAILABLE_LOGIT = -1e10
+
+
+@dataclass
+class ModelConfig:
+    obs_dim: int
+    action_dim: int  # continuous: size of the action vector; discrete: number of choices
+    n_agents: int  # agents seen in training (MAPPO's critic is tied to it; MAT is not)
+    algo: str = "mat"
+    action_type: str = "continuous"
+    n_embd: int = 64
+    n_head: int = 1
+    n_block: int = 1
+
+    def __post_init__(self):
+        if self.algo not in ALGOS:
+            raise ValueError(f"unknown algo {self.algo!r}; valid: {', '.join(ALGOS)}")
+        if self.action_type not in ACTION_TYPES:
+            raise ValueError(f"action_type must be one of {ACTION_TYPES}, got {self.action_type!r}")
+        if self.n_embd % self.n_head:
+            raise ValueError(f"n_embd {self.n_embd} must be divisible by n_head {self.n_head}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def init_linear(layer: nn.Linear, activated: bool = False, gain: float = 0.01) -> nn.Linear:
+    """Official init: orthogonal weights, zero bias; gain 0.01, or ReLU's before an activation."""
+    nn.init.orthogonal_(layer.weight, nn.init.calculate_gain("relu") if activated else gain)
+    if layer.bias is not None:
+        nn.init.zeros_(layer.bias)
+    return layer
+
+
+def mlp_block(n_embd: int) -> nn.Sequential:
+    return nn.Sequential(
+        init_linear(nn.Linear(n_embd, n_embd), activated=True),
+        nn.GELU(),
+        init_linear(nn.Linear(n_embd, n_embd)),
+    )
+
+
+def head(n_embd: int, out: int) -> nn.Sequential:
+    return nn.Sequential(
+        init_linear(nn.Linear(n_embd, n_embd), activated=True),
+        nn.GELU(),
+        nn.LayerNorm(n_embd),
+        init_linear(nn.Linear(n_embd, out)),
+    )
+
+
+KV = tuple[Tensor, Tensor]
+
+
+class Attention(nn.Module):
+    """Multi-head attention; `causal` masks keys after each query's own position.
+
+    With `past` (a cached step) the single new query sees every cached key plus its own, which
+    is exactly its causal row in the teacher-forced pass.
+    """
+
+    def __init__(self, n_embd: int, n_head: int, causal: bool):
+        super().__init__()
+        self.n_head, self.causal = n_head, causal
+        self.query = init_linear(nn.Linear(n_embd, n_embd))
+        self.key = init_linear(nn.Linear(n_embd, n_embd))
+        self.value = init_linear(nn.Linear(n_embd, n_embd))
+        self.proj = init_linear(nn.Linear(n_embd, n_embd))
+
+    def _heads(self, x: Tensor) -> Tensor:  # [B, L, C] -> [B, H, L, C/H]
+        batch, length, width = x.shape
+        return x.view(batch, length, self.n_head, width // self.n_head).transpose(1, 2)
+
+    def forward(self, query: Tensor, stream: Tensor, past: KV | None = None) -> tuple[Tensor, KV]:
+        q, k, v = (
+            self._heads(self.query(query)),
+            self._heads(self.key(stream)),
+            self._heads(self.value(stream)),
+        )
+        if past is not None:
+            k, v = torch.cat((past[0], k), dim=2), torch.cat((past[1], v), dim=2)
+        causal = self.causal and past is None
+        y = F.scaled_dot_product_attention(q, k, v, is_causal=causal)
+        batch, _, length, _ = y.shape
+        return self.proj(y.transpose(1, 2).reshape(batch, length, -1)), (k, v)
+
+
+class EncodeBlock(nn.Module):
+    def __init__(self, n_embd: int, n_head: int):
+        super().__init__()
+        self.attn = Attention(n_embd, n_head, causal=False)
+        self.ln1, self.ln2 = nn.LayerNorm(n_embd), nn.LayerNorm(n_embd)
+        self.mlp = mlp_block(n_embd)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = self.ln1(x + self.attn(x, x)[0])
+        return self.ln2(x + self.mlp(x))
+
+
+class DecodeBlock(nn.Module):
+    """x = ln1(x + attn1(x)); x = ln2(rep + attn2(q=rep, kv=x)); x = ln3(x + mlp(x)).
+
+    Both attentions are causal over the action stream."""
+
+    def __init__(self, n_embd: int, n_head: int):
+        super().__init__()
+        self.attn1 = Attention(n_embd, n_head, causal=True)
+        self.attn2 = Attention(n_embd, n_head, causal=True)
+        self.ln1, self.ln2, self.ln3 = (
+            nn.LayerNorm(n_embd),
+            nn.LayerNorm(n_embd),
+            nn.LayerNorm(n_embd),
+        )
+        self.mlp = mlp_block(n_embd)
+
+    def forward(self, x: Tensor, rep: Tensor, past: tuple[KV, KV] | None = None):
+        attended, kv1 = self.attn1(x, x, None if past is None else past[0])
+        x = self.ln1(x + attended)
+        attended, kv2 = self.attn2(rep, x, None if past is None else past[1])
+        x = self.ln2(rep + attended)
+        return self.ln3(x + self.mlp(x)), (kv1, kv2)
+
+
+class Encoder(nn.Module):
+    """Observations [B, n, obs] -> representations [B, n, C] and values [B, n, 1]."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.obs_encoder = nn.Sequential(
+            nn.LayerNorm(cfg.obs_dim),
+            init_linear(nn.Linear(cfg.obs_dim, cfg.n_embd), activated=True),
+            nn.GELU(),
+        )
+        self.ln = nn.LayerNorm(cfg.n_embd)
+        self.blocks = nn.Sequential(
+            *(EncodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block))
+        )
+        self.head = head(cfg.n_embd, 1)
+
+    def forward(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        rep = self.blocks(self.ln(self.obs_encoder(obs)))
+        return rep, self.head(rep)
+
+
+class Decoder(nn.Module):
+    """Shifted action tokens [B, L, token] + representations [B, L, C] -> action parameters."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        discrete = cfg.action_type == "discrete"
+        self.token_dim = cfg.action_dim + 1 if discrete else cfg.action_dim
+        self.action_encoder = nn.Sequential(
+            init_linear(nn.Linear(self.token_dim, cfg.n_embd, bias=not discrete), activated=True),
+            nn.GELU(),
+        )
+        self.ln = nn.LayerNorm(cfg.n_embd)
+        self.blocks = nn.ModuleList(DecodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block))
+        self.head = head(cfg.n_embd, cfg.action_dim)
+
+    def forward(self, tokens: Tensor, rep: Tensor) -> Tensor:
+        x = self.ln(self.action_encoder(tokens))
+        for block in self.blocks:
+            x, _ = block(x, rep)
+        return self.head(x)
+
+    def step(self, token: Tensor, rep: Tensor, past: list[tuple[KV, KV]] | None):
+        """One agent: token [B, 1, token], rep [B, 1, C], caches of the agents before it."""
+        x = self.ln(self.action_encoder(token))
+        present = []
+        for i, block in enumerate(self.blocks):
+            x, kv = block(x, rep, None if past is None else past[i])
+            present.append(kv)
+        return self.head(x), present
+
+
+class ActionDistribution:
+    """Gaussian (state-independent std) or Categorical (with unavailable actions masked)."""
+
+    def __init__(self, action_type: str):
+        self.discrete = action_type == "discrete"
+
+    def make(self, params: Tensor, std: Tensor | None, available: Tensor | None):
+        if self.discrete:
+            if available is not None:
+                params = params.masked_fill(available == 0, UNAVAILABLE_LOGIT)
+            return torch.distributions.Categorical(logits=params, validate_args=False)
+        return torch.distributions.Normal(params, std.expand_as(params), validate_args=False)
+
+    def log_prob_entropy(self, dist, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """Per agent and (continuous) per action dimension, as the official PPO ratio uses them."""
+        if self.discrete:
+            return dist.log_prob(actions.squeeze(-1).long()).unsqueeze(
+                -1
+            ), dist.entropy().unsqueeze(-1)
+        return dist.log_prob(actions), dist.entropy()
+
+    def sample(self, dist, deterministic: bool, generator: torch.Generator | None) -> Tensor:
+        if self.discrete:
+            # Choices travel as float indices, so one buffer serves both action types.
+            if deterministic:
+                return dist.logits.argmax(-1, keepdim=True).float()
+            uniform = torch.rand(dist.logits.shape, generator=generator, device=dist.logits.device)
+            gumbel = -torch.log(-torch.log(uniform.clamp_min(1e-20)))
+            return (dist.logits + gumbel).argmax(-1, keepdim=True).float()
+        if deterministic:
+            return dist.mean
+        noise = torch.randn(dist.mean.shape, generator=generator, device=dist.mean.device)
+        return dist.mean + dist.stddev * noise
+
+
+class Policy(nn.Module):
+    """The interface the trainer uses: teacher-forced `evaluate`, sampling `act`."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.dist = ActionDistribution(cfg.action_type)
+        if cfg.action_type == "continuous":
+            self.log_std = nn.Parameter(torch.ones(cfg.action_dim))
+
+    def std(self) -> Tensor | None:
+        """Official parametrisation: sigmoid(log_std) * 0.5 (initially ~0.37)."""
+        return torch.sigmoid(self.log_std) * 0.5 if self.cfg.action_type == "continuous" else None
+
+    def values(self, obs: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def action_params(self, obs: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """Teacher-forced: (mean or logits [B, n, A], values [B, n, 1])."""
+        raise NotImplementedError
+
+    def evaluate(self, obs: Tensor, actions: Tensor, available: Tensor | None = None):
+        """log-probs and entropies [B, n, A or 1] and values [B, n, 1] of taken actions."""
+        params, values = self.action_params(obs, actions)
+        dist = self.dist.make(params, self.std(), available)
+        log_prob, entropy = self.dist.log_prob_entropy(dist, actions)
+        return log_prob, entropy, values
+
+    @torch.no_grad()
+    def act(
+        self,
+        obs: Tensor,
+        available: Tensor | None = None,
+        deterministic: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Sample actions [B, n, A or 1]; returns actions, their log-probs and values."""
+        raise NotImplementedError
+
+
+class MAT(Policy):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__(cfg)
+        self.encoder = Encoder(cfg)
+        self.decoder = Decoder(cfg)
+
+    def values(self, obs: Tensor) -> Tensor:
+        return self.encoder(obs)[1]
+
+    def shift_tokens(self, actions: Tensor) -> Tensor:
+        """The decoder's input: a start token, then each agent's predecessor's action."""
+        batch, n, _ = actions.shape
+        tokens = torch.zeros(batch, n, self.decoder.token_dim, device=actions.device)
+        if self.cfg.action_type == "discrete":
+            tokens[:, 0, 0] = 1.0
+            tokens[:, 1:, 1:] = F.one_hot(actions[:, :-1, 0].long(), self.cfg.action_dim).to(
+                tokens.dtype
+            )
+        else:
+            tokens[:, 1:] = actions[:, :-1]
+        return tokens
+
+    def action_params(self, obs: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        rep, values = self.encoder(obs)
+        return self.decoder(self.shift_tokens(actions), rep), values
+
+    def action_token(self, action: Tensor) -> Tensor:
+        """Token [B, 1, token] that an agent's action [B, 1, A or 1] becomes for the next agent."""
+        if self.cfg.action_type == "discrete":
+            return F.pad(
+                F.one_hot(action[..., 0].long(), self.cfg.action_dim).to(torch.float32), (1, 0)
+            )
+        return action
+
+    def decode_step(self, token: Tensor, rep: Tensor, past=None):
+        """KV-cached single-agent decoder step: (mean or logits [B, 1, A], present caches)."""
+        return self.decoder.step(token, rep, past)
+
+    @torch.no_grad()
+    def act(self, obs, available=None, deterministic=False, generator=None):
+        rep, values = self.encoder(obs)
+        batch, n, _ = obs.shape
+        token = obs.new_zeros(batch, 1, self.decoder.token_dim)
+        if self.cfg.action_type == "discrete":
+            token[:, 0, 0] = 1.0
+        std, past = self.std(), None
+        actions, log_probs = [], []
+        for i in range(n):
+            params, past = self.decode_step(token, rep[:, i : i + 1], past)
+            mask = None if available is None else available[:, i : i + 1]
+            dist = self.dist.make(params, std, mask)
+            action = self.dist.sample(dist, deterministic, generator)
+            actions.append(action)
+            log_probs.append(self.dist.log_prob_entropy(dist, action)[0])
+            token = self.action_token(action)
+        return torch.cat(actions, 1), torch.cat(log_probs, 1), values
+
+
+def actor_mlp(obs_dim: int, n_embd: int, out: int) -> nn.Sequential:
+    """The official MAT-Dec actor: LN -> Linear -> GELU -> LN -> Linear -> GELU -> LN -> Linear."""
+    return nn.Sequential(
+        nn.LayerNorm(obs_dim),
+        init_linear(nn.Linear(obs_dim, n_embd), activated=True),
+        nn.GELU(),
+        nn.LayerNorm(n_embd),
+        init_linear(nn.Linear(n_embd, n_embd), activated=True),
+        nn.GELU(),
+        nn.LayerNorm(n_embd),
+        init_linear(nn.Linear(n_embd, out)),
+    )
+
+
+class Decentralised(Policy):
+    """Agents act independently from their own observations (MAT-Dec and MAPPO)."""
+
+    def actor(self, obs: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def action_params(self, obs: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        return self.actor(obs), self.values(obs)
+
+    @torch.no_grad()
+    def act(self, obs, available=None, deterministic=False, generator=None):
+        dist = self.dist.make(self.actor(obs), self.std(), available)
+        actions = self.dist.sample(dist, deterministic, generator)
+        return actions, self.dist.log_prob_entropy(dist, actions)[0], self.values(obs)
+
+
+class MATDec(Decentralised):
+    """MAT's encoder as the critic; one shared MLP actor per agent."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__(cfg)
+        self.encoder = Encoder(cfg)
+        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_dim)
+
+    def actor(self, obs: Tensor) -> Tensor:
+        return self.mlp(obs)
+
+    def values(self, obs: Tensor) -> Tensor:
+        return self.encoder(obs)[1]
+
+
+class MAPPO(Decentralised):
+    """Shared MLP actor; centralised critic on the joint observation plus the agent's own."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__(cfg)
+        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_dim)
+        self.critic = actor_mlp(cfg.obs_dim * (cfg.n_agents + 1), cfg.n_embd, 1)
+
+    def actor(self, obs: Tensor) -> Tensor:
+        return self.mlp(obs)
+
+    def values(self, obs: Tensor) -> Tensor:
+        batch, n, _ = obs.shape
+        if n != self.cfg.n_agents:
+            raise ValueError(f"this MAPPO critic was built for {self.cfg.n_agents} agents, got {n}")
+        joint = obs.reshape(batch, 1, -1).expand(batch, n, -1)
+        return self.critic(torch.cat((joint, obs), dim=-1))
+
+
+def build_policy(cfg: ModelConfig) -> Policy:
+    return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO}[cfg.algo](cfg)
