@@ -38,6 +38,7 @@ class _QuietSuiteModels(logging.Filter):
 
 logging.getLogger("absl").addFilter(_QuietSuiteModels())
 
+from mat_sdk.envs.games import CoordinationGame
 from mat_sdk.envs.mamujoco import PREFIX as _MAMUJOCO
 from mat_sdk.envs.mamujoco import MaMuJoCoTeam
 from mat_sdk.envs.parallel import TeamParallelEnv
@@ -57,6 +58,8 @@ __all__ = [
 
 
 def _build_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):
+    if env_id.startswith("coordination-"):
+        return CoordinationGame(env_id, faults, **options)
     if env_id.startswith(_MAMUJOCO):
         return MaMuJoCoTeam(env_id, faults, **options)
     return RobotTeam(spec_for(env_id), faults, **options)

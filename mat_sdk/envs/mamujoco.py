@@ -19,6 +19,8 @@ _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
 class MaMuJoCoTeam:
     """A MaMuJoCo scenario with the array API of `RobotTeam` (obs padded to one size)."""
 
+    action_type = "continuous"
+
     def __init__(
         self,
         env_id: str,
@@ -43,6 +45,7 @@ class MaMuJoCoTeam:
         self.agent_id = True if agent_id is None else bool(agent_id)
         self.act_dims = np.array([self._env.action_space(a).shape[0] for a in self.agents])
         self.act_dim = int(self.act_dims.max())
+        self.n_actions = self.act_dim
         self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.agents]
         self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
@@ -82,6 +85,31 @@ class MaMuJoCoTeam:
         first = self.agents[0]
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit
         return self._pack(obs), float(rewards[first]), bool(terminations[first]), truncated
+
+    def get_state(self) -> dict:
+        import mujoco
+
+        env = self._env.single_agent_env.unwrapped
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(env.model, spec))
+        mujoco.mj_getState(env.model, env.data, physics, spec)
+        return {
+            "physics": physics,
+            "random": env.np_random.bit_generator.state,
+            "steps": self._steps,
+        }
+
+    def set_state(self, state: dict) -> None:
+        import mujoco
+
+        env = self._env.single_agent_env.unwrapped
+        mujoco.mj_setState(
+            env.model, env.data, np.asarray(state["physics"]), mujoco.mjtState.mjSTATE_INTEGRATION
+        )
+        env.np_random.bit_generator.state = state["random"]
+        self._steps = int(state["steps"])
+        self._seed = None
+        mujoco.mj_forward(env.model, env.data)
 
     def state(self) -> np.ndarray:
         return np.asarray(self._env.state(), dtype=np.float32)

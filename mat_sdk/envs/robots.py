@@ -157,5 +157,7 @@ def spec_for(env_id: str) -> RobotSpec:
     match = _SWIMMER.match(env_id)
     if match:
         return swimmer_spec(int(match.group(1)))
-    valid = ", ".join([*_FIXED, "swimmer-N (N >= 3)", "mamujoco:<Scenario>-<conf>"])
+    valid = ", ".join(
+        [*_FIXED, "swimmer-N (N >= 3)", "mamujoco:<Scenario>-<conf>", "coordination-N"]
+    )
     raise ValueError(f"unknown environment id {env_id!r}; valid ids: {valid}")

@@ -28,6 +28,7 @@ from mat_sdk.envs.decomposition import (
 from mat_sdk.envs.robots import RobotSpec
 
 FAULT_MODES = ("zero", "remove")
+_FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # includes ctrl and the solver's warmstart
 
 
 def agent_name(index: int) -> str:
@@ -36,6 +37,8 @@ def agent_name(index: int) -> str:
 
 class RobotTeam:
     """A multi-agent robot with an array API. See `mat_sdk.envs.make` for the options."""
+
+    action_type = "continuous"
 
     def __init__(
         self,
@@ -70,6 +73,7 @@ class RobotTeam:
         self.n_agents = len(self.active)
         self.act_dims = np.array([len(self.team[i].actuators) for i in self.active])
         self.act_dim = max(len(a.actuators) for a in self.team)
+        self.n_actions = self.act_dim  # the policy's action size
         self._reward = (
             spec.fast_reward if task is None and spec.fast_reward else self._task.get_reward
         )
@@ -226,6 +230,24 @@ class RobotTeam:
             (self._data.qpos, self._data.qvel, self._extra_features(), self._zero_one)
         )
         return source[self._obs_index].astype(np.float32)
+
+    def get_state(self) -> dict:
+        """Everything that decides the rest of the episode, to resume it exactly."""
+        physics = np.empty(mujoco.mj_stateSize(self._model, _FULL_STATE))
+        mujoco.mj_getState(self._model, self._data, physics, _FULL_STATE)
+        return {
+            "physics": physics,
+            "geom_pos": self._model.geom_pos.copy(),  # tasks place targets here at reset
+            "random": self._task._random.get_state(),
+            "steps": self._steps,
+        }
+
+    def set_state(self, state: dict) -> None:
+        mujoco.mj_setState(self._model, self._data, np.asarray(state["physics"]), _FULL_STATE)
+        self._model.geom_pos[:] = state["geom_pos"]
+        self._task._random.set_state(state["random"])
+        self._steps = int(state["steps"])
+        mujoco.mj_forward(self._model, self._data)
 
     def state(self) -> np.ndarray:
         """The global state: all joint positions (less horizontal root position) and velocities."""

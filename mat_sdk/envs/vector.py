@@ -86,6 +86,21 @@ class _EnvSlice:
         for k, team in enumerate(self.teams):
             self.buffers.state[self.start + k] = team.state()
 
+    def get_state(self) -> list[dict]:
+        return [
+            {
+                "team": team.get_state(),
+                "return": float(self._returns[k]),
+                "length": int(self._lengths[k]),
+            }
+            for k, team in enumerate(self.teams)
+        ]
+
+    def set_state(self, states: list[dict]) -> None:
+        for k, (team, state) in enumerate(zip(self.teams, states, strict=True)):
+            team.set_state(state["team"])
+            self._returns[k], self._lengths[k] = state["return"], state["length"]
+
 
 def _worker(
     conn: Connection, make_team: Callable, seeds: list[int], start: int, sizes, num_envs, raw
@@ -98,8 +113,7 @@ def _worker(
             command, argument = conn.recv()
             if command == "close":
                 break
-            getattr(envs, command)(*argument)
-            conn.send(("ok", None))
+            conn.send(("ok", getattr(envs, command)(*argument)))
     except KeyboardInterrupt:
         pass
     except Exception:
@@ -115,6 +129,8 @@ _TEAM_ATTRIBUTES = (
     "obs_dim",
     "act_dim",
     "act_dims",
+    "n_actions",
+    "action_type",
     "state_dim",
     "episode_limit",
 )
@@ -220,6 +236,15 @@ class VecTeam:
         self._run("state", [()] * max(self.workers, 1))
         return self._buffers.state.copy()
 
+    def get_state(self) -> list[dict]:
+        """Per copy: its full simulation state and episode progress (picklable numpy)."""
+        return [s for part in self._run("get_state", [()] * max(self.workers, 1)) for s in part]
+
+    def set_state(self, states: list[dict]) -> None:
+        if len(states) != self.num_envs:
+            raise ValueError(f"{len(states)} env states for {self.num_envs} envs")
+        self._run("set_state", [(states[lo:hi],) for lo, hi in itertools.pairwise(self._slices)])
+
     def close(self) -> None:
         if self._closed:
             return
@@ -242,26 +267,25 @@ class VecTeam:
         if hasattr(self, "_closed"):
             self.close()
 
-    def _run(self, command: str, arguments: list) -> None:
+    def _run(self, command: str, arguments: list) -> list:
+        """Run `_EnvSlice.<command>(*arguments[k])` on every slice k; their results in order."""
         if self._closed:
             raise RuntimeError("this vectorised env is closed")
-        """Run `_EnvSlice.<command>(*arguments[k])` on every slice k and wait for all."""
         if self.workers == 0:
-            getattr(self._local, command)(*arguments[0])
-            return
+            return [getattr(self._local, command)(*arguments[0])]
         for pipe, argument in zip(self._pipes, arguments, strict=True):
             pipe.send((command, argument))
-        self._wait()
+        return self._wait()
 
-    def _wait(self) -> None:
-        errors = []
+    def _wait(self) -> list:
+        results, errors = [], []
         for pipe in self._pipes:
             try:
                 status, detail = pipe.recv()
             except EOFError:
                 status, detail = "error", "a worker process died"
-            if status == "error":
-                errors.append(detail)
+            (errors if status == "error" else results).append(detail)
         if errors:
             self.close()
             raise RuntimeError("env worker failed:\n" + errors[0])
+        return results

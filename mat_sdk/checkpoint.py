@@ -1,0 +1,68 @@
+"""The checkpoint file (DESIGN §4): one `torch.save` of plain containers, written atomically.
+
+`{"format": "mat-checkpoint", "version": 1, "config", "model", "optimizer", "progress",
+"rng", "obs_norm", "value_norm", "envs"}`. Loaded with `weights_only=True`: a checkpoint can
+hold no code.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+FORMAT = "mat-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """The file is missing, not a MAT checkpoint, or of a version this SDK cannot read."""
+
+
+def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:
+    """Write to a temporary file beside `path`, fsync, then rename over it.
+
+    A crash at any moment leaves either the old checkpoint or the new one, never a torn file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save({"format": FORMAT, "version": VERSION, **payload}, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+    return path
+
+
+def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
+    """Load and validate a checkpoint; raises `CheckpointError` with what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:
+        raise CheckpointError(
+            f"{path} is not a MAT checkpoint (torch.load failed: {error})"
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a MAT checkpoint (no 'format': '{FORMAT}' field)")
+    if payload.get("version", 0) > VERSION:
+        raise CheckpointError(
+            f"{path} has checkpoint version {payload['version']}, newer than this SDK reads "
+            f"({VERSION}); upgrade mat-sdk"
+        )
+    return payload
