@@ -47,6 +47,12 @@ def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
+def remove_stale_temp_files(directory: str | os.PathLike) -> None:
+    """Temp files a killed writer left behind; call when a run (the only writer) starts."""
+    for stale in Path(directory).glob(".*.pt.*.tmp"):
+        stale.unlink(missing_ok=True)
+
+
 def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
     """Load and validate a checkpoint; raises `CheckpointError` with what is wrong."""
     path = Path(path)

@@ -1,0 +1,89 @@
+"""What a training run leaves in its directory: metrics.csv, TensorBoard events, a curve PNG."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+from mat_sdk.checkpoint import remove_stale_temp_files
+
+METRICS_NAME = "metrics.csv"
+CURVE_NAME = "learning_curve.png"
+
+
+class RunLog:
+    """Appends one row per update. On resume, rows after the checkpoint's update are dropped,
+    so a run killed between checkpoints and resumed has no duplicate rows."""
+
+    def __init__(self, out_dir: Path, resume_after: int = 0):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        remove_stale_temp_files(self.out_dir)
+        self.path = self.out_dir / METRICS_NAME
+        rows = read_metrics(self.path) if self.path.exists() else []
+        kept = [r for r in rows if int(r["updates"]) <= resume_after]
+        self._columns = list(rows[0]) if rows else None
+        if len(kept) != len(rows):
+            self._rewrite(kept)
+        self._file = self.path.open("a", newline="")
+        self._writer = None
+        self._tensorboard = SummaryWriter(log_dir=str(self.out_dir / "tensorboard"))
+
+    def _rewrite(self, rows: list[dict]) -> None:
+        with self.path.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=self._columns)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def write(self, metrics: dict) -> None:
+        if self._writer is None:
+            new_file = self._columns is None
+            self._columns = self._columns or list(metrics)
+            self._writer = csv.DictWriter(self._file, fieldnames=self._columns)
+            if new_file:
+                self._writer.writeheader()
+        self._writer.writerow({k: metrics.get(k, "") for k in self._columns})
+        self._file.flush()
+        for key, value in metrics.items():
+            if key not in ("steps", "updates") and not math.isnan(value):
+                self._tensorboard.add_scalar(key, value, metrics["steps"])
+
+    def close(self) -> None:
+        self._file.close()
+        self._tensorboard.close()
+        plot_curve(self.path, self.out_dir / CURVE_NAME)
+
+
+def read_metrics(path: Path) -> list[dict]:
+    with Path(path).open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def plot_curve(metrics_path: Path, png_path: Path, title: str | None = None) -> Path | None:
+    """Episode return (mean, min-max band) against env steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in read_metrics(metrics_path) if r["return_mean"] not in ("", "nan")]
+    if not rows:
+        return None
+    steps = [int(r["steps"]) for r in rows]
+    mean = [float(r["return_mean"]) for r in rows]
+    low = [float(r["return_min"]) for r in rows]
+    high = [float(r["return_max"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(steps, mean, label="episode return (mean)")
+    ax.fill_between(steps, low, high, alpha=0.2, label="min-max")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("episode return")
+    ax.set_title(title or Path(metrics_path).parent.name)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)
+    return png_path

@@ -1,0 +1,491 @@
+"""PPO training of MAT (and MAT-Dec / MAPPO) on vectorised multi-agent envs.
+
+    trainer = Trainer("cheetah-6x1", algo="mat", out_dir="runs/cheetah")
+    trainer.learn(200_000)
+    trainer.save("cheetah.pt")
+    trainer = Trainer.load("cheetah.pt")          # resumes exactly where it stopped
+    actions = trainer.predict(obs)                # obs [n, obs_dim] or [B, n, obs_dim]
+
+The defaults are the paper's MA-MuJoCo recipe (`PAPER_NOTES.md`); MAPPO gets its own
+(lr 5e-6 actor / 5e-3 critic, 5 epochs, clip 0.2) unless you set them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mat_sdk import checkpoint, envs
+from mat_sdk.model import ModelConfig, Policy, build_policy
+from mat_sdk.normalization import RunningMeanStd, ValueNorm
+from mat_sdk.ppo import gae, ppo_loss
+from mat_sdk.run_log import RunLog
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+@dataclass
+class TrainConfig:
+    env: str = "cheetah-6x1"
+    algo: str = "mat"
+    faults: dict[str, str] = field(default_factory=dict)
+    env_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"agent_id": False}
+    seed: int = 0
+    num_envs: int = 40
+    workers: int = 0
+    rollout_length: int = 100
+    lr: float = 5e-5
+    critic_lr: float | None = None  # MAPPO's critic; None: same as lr
+    adam_eps: float = 1e-5
+    ppo_epochs: int = 10
+    num_minibatches: int = 40
+    clip: float = 0.05
+    entropy_coef: float = 0.001
+    value_coef: float = 1.0
+    huber_delta: float = 10.0
+    max_grad_norm: float = 0.5
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    n_embd: int = 64
+    n_head: int = 1
+    n_block: int = 1
+    shuffle_agents: bool = False  # the paper shuffles the order; the official code does not
+    normalize_obs: bool = True
+    checkpoint_every: int = 10  # updates
+    device: str = "cpu"
+
+    @classmethod
+    def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
+        """The paper's per-method hyperparameters, then the caller's overrides."""
+        defaults = {"mappo": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2}}
+        unknown = set(overrides) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown training option(s) {sorted(unknown)}")
+        return cls(**{"algo": algo, **defaults.get(algo, {}), **overrides})
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN or inf; the last good checkpoint is left as it was."""
+
+
+def _to_torch(value: Any) -> Any:
+    """numpy inside env states -> tensors, so the checkpoint loads with weights_only=True."""
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(value.copy())
+    if isinstance(value, dict):
+        return {k: _to_torch(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(_to_torch(v) for v in value)
+    return value
+
+
+def _to_numpy(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        return value.numpy()
+    if isinstance(value, dict):
+        return {k: _to_numpy(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(_to_numpy(v) for v in value)
+    return value
+
+
+def permute_agents(x: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """x [B, n, ...] reordered along agents by order [B, n]."""
+    index = order.view(*order.shape, *([1] * (x.dim() - 2))).expand_as(x)
+    return x.gather(1, index)
+
+
+class Trainer:
+    """Stable-Baselines3-style surface: `learn`, `save`, `load`, `predict`."""
+
+    def __init__(
+        self,
+        env: str = "cheetah-6x1",
+        algo: str = "mat",
+        out_dir: str | Path | None = None,
+        **options: Any,
+    ):
+        self.config = TrainConfig.for_algo(algo, env=env, **options)
+        cfg = self.config
+        self.device = torch.device(
+            "cuda" if cfg.device == "auto" and torch.cuda.is_available() else cfg.device
+        )
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(
+                "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
+            )
+        torch.manual_seed(cfg.seed)
+        if (
+            cfg.workers > 0
+        ):  # env processes need the cores; spinning torch threads would starve them
+            torch.set_num_threads(1)
+        self.env = envs.make_vec(
+            cfg.env,
+            cfg.num_envs,
+            workers=cfg.workers,
+            seed=cfg.seed,
+            faults=cfg.faults,
+            **cfg.env_options,
+        )
+        self.model_config = ModelConfig(
+            obs_dim=self.env.obs_dim,
+            action_dim=self.env.n_actions,
+            n_agents=self.env.n_agents,
+            algo=algo,
+            action_type=self.env.action_type,
+            n_embd=cfg.n_embd,
+            n_head=cfg.n_head,
+            n_block=cfg.n_block,
+        )
+        self.policy: Policy = build_policy(self.model_config).to(self.device)
+        self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps)
+        self.value_norm = ValueNorm(device=self.device)
+        self.obs_norm = RunningMeanStd(self.env.obs_dim)
+        self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
+        self.shuffle_generator = torch.Generator().manual_seed(cfg.seed + 1)
+        self.progress = {"steps": 0, "updates": 0}
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self._next_obs = self.env.reset(seed=cfg.seed)
+
+    def _param_groups(self) -> list[dict]:
+        critic = getattr(self.policy, "critic", None)
+        if critic is None or self.config.critic_lr is None:
+            return [{"params": list(self.policy.parameters())}]
+        critic_ids = {id(p) for p in critic.parameters()}
+        actor = [p for p in self.policy.parameters() if id(p) not in critic_ids]
+        return [
+            {"params": actor},
+            {"params": list(critic.parameters()), "lr": self.config.critic_lr},
+        ]
+
+    # ------------------------------------------------------------------ acting
+    def _observe(self, obs: np.ndarray, update: bool = False) -> torch.Tensor:
+        if self.config.normalize_obs:
+            if update:
+                self.obs_norm.update(obs)
+            obs = self.obs_norm.normalize(obs)
+        return torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+
+    def _agent_order(self, batch: int) -> torch.Tensor | None:
+        if not self.config.shuffle_agents:
+            return None
+        keys = torch.rand(batch, self.env.n_agents, generator=self.shuffle_generator)
+        return keys.argsort(dim=1).to(self.device)
+
+    def _act(self, obs: torch.Tensor, order: torch.Tensor | None, deterministic: bool = False):
+        """Act in `order` (agents decode in that sequence); results back in canonical order."""
+        if order is None:
+            return self.policy.act(obs, deterministic=deterministic, generator=self.generator)
+        inverse = order.argsort(dim=1)
+        results = self.policy.act(
+            permute_agents(obs, order), deterministic=deterministic, generator=self.generator
+        )
+        return tuple(permute_agents(r, inverse) for r in results)
+
+    def _evaluate(self, obs, actions, order):
+        if order is None:
+            return self.policy.evaluate(obs, actions)
+        inverse = order.argsort(dim=1)
+        results = self.policy.evaluate(permute_agents(obs, order), permute_agents(actions, order))
+        return tuple(permute_agents(r, inverse) for r in results)
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
+        """Actions for raw observations [n, obs_dim] or [B, n, obs_dim] (numpy)."""
+        obs = np.asarray(obs, dtype=np.float32)
+        single = obs.ndim == 2
+        batch = obs[None] if single else obs
+        if batch.ndim != 3 or batch.shape[-1] != self.env.obs_dim:
+            raise ValueError(
+                f"obs must be [n, {self.env.obs_dim}] or [B, n, {self.env.obs_dim}], "
+                f"got {obs.shape}"
+            )
+        actions, _, _ = self.policy.act(
+            self._observe(batch), deterministic=deterministic, generator=self.generator
+        )
+        actions = actions.cpu().numpy()
+        return actions[0] if single else actions
+
+    # ---------------------------------------------------------------- training
+    def learn(
+        self,
+        total_steps: int,
+        callback: Callable[[Trainer, dict], bool | None] | None = None,
+        progress_bar: bool = True,
+    ) -> Trainer:
+        """Train until `total_steps` env steps (counted per env, not per agent) in all.
+
+        `callback(trainer, metrics)` runs after each update; returning False stops training.
+        Checkpoints go to `out_dir/checkpoint.pt` every `checkpoint_every` updates and at the end.
+        """
+        cfg = self.config
+        per_update = cfg.num_envs * cfg.rollout_length
+        log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
+        bar = _progress(total_steps, self.progress["steps"], progress_bar)
+        try:
+            while self.progress["steps"] < total_steps:
+                start = time.perf_counter()
+                batch, finished = self._rollout()
+                rolled = time.perf_counter()
+                losses = self._update(batch)
+                updated = time.perf_counter()
+                self.progress["steps"] += per_update
+                self.progress["updates"] += 1
+                metrics = {
+                    "steps": self.progress["steps"],
+                    "updates": self.progress["updates"],
+                    "return_mean": float(np.mean(finished)) if finished else math.nan,
+                    "return_min": float(np.min(finished)) if finished else math.nan,
+                    "return_max": float(np.max(finished)) if finished else math.nan,
+                    "episodes": len(finished),
+                    **losses,
+                    "rollout_s": rolled - start,
+                    "update_s": updated - rolled,
+                    "steps_per_s": per_update / (updated - start),
+                }
+                if log:
+                    log.write(metrics)
+                if self.out_dir and self.progress["updates"] % cfg.checkpoint_every == 0:
+                    self.save(self.out_dir / CHECKPOINT_NAME)
+                bar.update(per_update)
+                bar.set_postfix(
+                    ret=f"{metrics['return_mean']:.1f}", sps=f"{metrics['steps_per_s']:.0f}"
+                )
+                if callback is not None and callback(self, metrics) is False:
+                    break
+            if self.out_dir:
+                self.save(self.out_dir / CHECKPOINT_NAME)
+        finally:
+            bar.close()
+            if log:
+                log.close()
+        return self
+
+    @torch.no_grad()
+    def _rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:
+        cfg, env, device = self.config, self.env, self.device
+        T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
+        buffers = {
+            name: []
+            for name in (
+                "obs",
+                "actions",
+                "log_probs",
+                "values",
+                "rewards",
+                "terminated",
+                "done",
+                "order",
+            )
+        }
+        bootstrap = torch.zeros(T, E, n, 1, device=device)
+        finished: list[float] = []
+        obs = self._observe(self._next_obs, update=True)
+        for t in range(T):
+            order = self._agent_order(E)
+            actions, log_probs, values = self._act(obs, order)
+            next_obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
+            for name, value in (
+                ("obs", obs),
+                ("actions", actions),
+                ("log_probs", log_probs),
+                ("values", values),
+                ("order", order),
+            ):
+                buffers[name].append(value)
+            buffers["rewards"].append(
+                torch.as_tensor(reward, dtype=torch.float32, device=device).view(E, 1, 1)
+            )
+            buffers["terminated"].append(
+                torch.as_tensor(terminated, dtype=torch.float32, device=device).view(E, 1, 1)
+            )
+            buffers["done"].append(
+                torch.as_tensor(terminated | truncated, dtype=torch.float32, device=device).view(
+                    E, 1, 1
+                )
+            )
+            if truncated.any():  # bootstrap from the last observation of a time-limited episode
+                final = self._observe(info["final_obs"][truncated])
+                bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
+            finished += info["episode_return"][info["done"]].tolist()
+            self._next_obs = next_obs
+            obs = self._observe(next_obs, update=t < T - 1)
+        last_values = self.policy.values(obs)
+        batch = {k: torch.stack(v) for k, v in buffers.items() if k != "order"}
+        if cfg.shuffle_agents:
+            batch["order"] = torch.stack(buffers["order"])
+        denorm = self.value_norm.denormalize
+        values = denorm(batch["values"])
+        next_values = torch.cat((values[1:], denorm(last_values)[None]))
+        ended = batch["done"].expand_as(next_values) > 0
+        next_values = torch.where(ended, denorm(bootstrap), next_values)
+        advantages = gae(
+            batch["rewards"],
+            values,
+            next_values,
+            batch["terminated"],
+            batch["done"],
+            cfg.gamma,
+            cfg.gae_lambda,
+        )
+        batch["returns"] = advantages + values
+        batch["advantages"] = advantages
+        return batch, finished
+
+    def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        cfg = self.config
+        flat = {
+            k: v.flatten(0, 1)
+            for k, v in batch.items()
+            if k not in ("rewards", "terminated", "done")
+        }
+        advantages = flat["advantages"]
+        flat["advantages"] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        size = flat["obs"].shape[0]
+        minibatch = size // cfg.num_minibatches
+        if minibatch < 1:
+            raise ValueError(f"num_minibatches {cfg.num_minibatches} > env-steps per update {size}")
+        sums = {
+            "policy_loss": 0.0,
+            "value_loss": 0.0,
+            "entropy": 0.0,
+            "clip_fraction": 0.0,
+            "grad_norm": 0.0,
+        }
+        count = 0
+        for _ in range(cfg.ppo_epochs):
+            permutation = torch.randperm(size, generator=self.shuffle_generator).to(self.device)
+            for k in range(cfg.num_minibatches):
+                idx = permutation[k * minibatch : (k + 1) * minibatch]
+                mb = {key: value[idx] for key, value in flat.items()}
+                log_prob, entropy, values = self._evaluate(
+                    mb["obs"], mb["actions"], mb.get("order")
+                )
+                self.value_norm.update(mb["returns"])
+                terms = ppo_loss(
+                    log_prob,
+                    mb["log_probs"],
+                    mb["advantages"],
+                    entropy,
+                    values,
+                    mb["values"],
+                    self.value_norm.normalize(mb["returns"]),
+                    cfg.clip,
+                    cfg.entropy_coef,
+                    cfg.value_coef,
+                    cfg.huber_delta,
+                )
+                if not torch.isfinite(terms.total):
+                    raise TrainingDiverged(
+                        f"non-finite loss at update {self.progress['updates'] + 1} "
+                        f"(minibatch {k}); training stopped, the last good checkpoint is kept"
+                    )
+                self.optimizer.zero_grad(set_to_none=True)
+                terms.total.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(
+                    self.policy.parameters(), cfg.max_grad_norm
+                )
+                self.optimizer.step()
+                for key, value in (
+                    ("policy_loss", terms.policy),
+                    ("value_loss", terms.value),
+                    ("entropy", terms.entropy),
+                    ("clip_fraction", terms.clip_fraction),
+                    ("grad_norm", grad_norm),
+                ):
+                    sums[key] += float(value.detach())
+                count += 1
+        return {key: value / count for key, value in sums.items()}
+
+    # ------------------------------------------------------------ checkpoints
+    def state_payload(self) -> dict[str, Any]:
+        return {
+            "config": {
+                "train": asdict(self.config),
+                "model": self.model_config.to_dict(),
+                "env": {
+                    "id": self.config.env,
+                    "agents": list(self.env.agents),
+                    "obs_dim": self.env.obs_dim,
+                    "action_type": self.env.action_type,
+                    "action_dim": self.env.n_actions,
+                    "act_dim": self.env.act_dim,
+                    "action_low": -1.0,
+                    "action_high": 1.0,
+                },
+            },
+            "model": {k: v.cpu() for k, v in self.policy.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+            "progress": dict(self.progress),
+            "rng": {
+                "torch": self.generator.get_state().cpu(),
+                "shuffle": self.shuffle_generator.get_state(),
+            },
+            "obs_norm": self.obs_norm.state_dict(),
+            "value_norm": self.value_norm.state_dict(),
+            "envs": _to_torch(self.env.get_state()),
+            "next_obs": torch.from_numpy(self._next_obs.copy()),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write a checkpoint atomically (temp file + rename)."""
+        return checkpoint.save_atomic(self.state_payload(), path)
+
+    @classmethod
+    def load(cls, path: str | Path, out_dir: str | Path | None = None, **overrides: Any) -> Trainer:
+        """Rebuild a trainer from a checkpoint; `learn` then continues exactly where it stopped.
+
+        Overrides may change how to run (device, workers, out_dir), not what is trained.
+        """
+        payload = checkpoint.load(path)
+        train = dict(payload["config"]["train"])
+        allowed = {"device", "workers", "checkpoint_every"}
+        if set(overrides) - allowed:
+            raise ValueError(
+                f"Trainer.load can override only {sorted(allowed)}; "
+                "use Trainer.from_pretrained to change the task"
+            )
+        train.update(overrides)
+        algo = train.pop("algo")
+        env = train.pop("env")
+        trainer = cls(env, algo, out_dir=out_dir, **train)
+        trainer.restore(payload)
+        return trainer
+
+    def restore(self, payload: dict[str, Any], training_state: bool = True) -> None:
+        self.policy.load_state_dict(payload["model"])
+        self.obs_norm.load_state_dict(payload["obs_norm"])
+        self.value_norm.load_state_dict(payload["value_norm"])
+        if not training_state:
+            return
+        self.optimizer.load_state_dict(payload["optimizer"])
+        self.progress = dict(payload["progress"])
+        self.generator.set_state(
+            payload["rng"]["torch"].to(self.generator.device)
+            if self.device.type == "cuda"
+            else payload["rng"]["torch"]
+        )
+        self.shuffle_generator.set_state(payload["rng"]["shuffle"])
+        self.env.set_state(_to_numpy(payload["envs"]))
+        self._next_obs = payload["next_obs"].numpy().copy()
+
+    def close(self) -> None:
+        self.env.close()
+
+    def __enter__(self) -> Trainer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _progress(total: int, done: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=done, unit="step", disable=not enabled, dynamic_ncols=True)

@@ -1,0 +1,192 @@
+"""PPO trainer: learning (honest, seconds), exact resume, crash safety, clear errors."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from mat_sdk import checkpoint, envs
+from mat_sdk.trainer import Trainer, TrainingDiverged
+
+GAME = {
+    "num_envs": 32,
+    "rollout_length": 8,
+    "lr": 5e-4,
+    "ppo_epochs": 4,
+    "num_minibatches": 2,
+    "clip": 0.2,
+    "entropy_coef": 0.01,
+}
+
+
+def train_returns(env_id, algo, steps, **options):
+    returns = []
+    with Trainer(env_id, algo, **options) as trainer:
+        trainer.learn(
+            steps, progress_bar=False, callback=lambda t, m: returns.append(m["return_mean"])
+        )
+    return returns
+
+
+def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
+    mat = np.mean(train_returns("coordination-3", "mat", 16_000, **GAME)[-5:])
+    dec = np.mean(train_returns("coordination-3", "mat-dec", 16_000, **GAME)[-5:])
+    # random play scores 2/27 = 0.07; decentralised actors can reach at most 1/3
+    assert mat >= 0.9, mat
+    assert dec <= 0.5, dec
+    assert mat - dec >= 0.4
+
+
+def random_team_return(env_id, episodes=16, **options):
+    vec = envs.make_vec(env_id, episodes, seed=100, **options)
+    vec.reset()
+    rng = np.random.default_rng(0)
+    returns = []
+    while len(returns) < episodes:
+        _, _, _, _, info = vec.step(rng.uniform(-1, 1, (episodes, vec.n_agents, vec.act_dim)))
+        returns += info["episode_return"][info["done"]].tolist()
+    return float(np.mean(returns))
+
+
+def test_short_continuous_run_beats_a_random_team():
+    options = {"episode_limit": 100}
+    random = random_team_return("cheetah-2x3", **options)
+    returns = train_returns(
+        "cheetah-2x3",
+        "mat",
+        12_800,
+        num_envs=16,
+        rollout_length=50,
+        lr=1e-3,
+        ppo_epochs=5,
+        num_minibatches=4,
+        clip=0.2,
+        entropy_coef=0.0,
+        env_options=options,
+    )
+    learned = np.nanmean(returns[-4:])
+    assert learned >= max(2.0, 3 * random), (learned, random)
+
+
+TINY = {
+    "num_envs": 3,
+    "rollout_length": 10,
+    "ppo_epochs": 2,
+    "num_minibatches": 2,
+    "lr": 1e-3,
+    "checkpoint_every": 1,
+    "env_options": {"episode_limit": 15},
+}
+
+
+def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
+    with Trainer(
+        "hopper-4x1", "mat", out_dir=tmp_path / "a", shuffle_agents=True, **TINY
+    ) as straight:
+        straight.learn(120, progress_bar=False)
+    with Trainer("hopper-4x1", "mat", out_dir=tmp_path / "b", shuffle_agents=True, **TINY) as first:
+        first.learn(60, progress_bar=False)
+    with Trainer.load(tmp_path / "b" / "checkpoint.pt", out_dir=tmp_path / "b") as resumed:
+        assert resumed.progress == {"steps": 60, "updates": 2}
+        resumed.learn(120, progress_bar=False)
+        for (name, a), b in zip(
+            straight.policy.state_dict().items(), resumed.policy.state_dict().values(), strict=True
+        ):
+            assert torch.equal(a, b), name
+    a_rows = (tmp_path / "a" / "metrics.csv").read_text().splitlines()
+    b_rows = (tmp_path / "b" / "metrics.csv").read_text().splitlines()
+    drop_timing = (
+        [line.split(",")[:10] for line in a_rows],
+        [line.split(",")[:10] for line in b_rows],
+    )
+    assert drop_timing[0] == drop_timing[1] and len(a_rows) == 5
+
+
+KILL_SCRIPT = """
+import sys
+from mat_sdk.trainer import Trainer
+out = sys.argv[1]
+import pathlib
+ckpt = pathlib.Path(out) / "checkpoint.pt"
+options = dict(num_envs=2, rollout_length=5, ppo_epochs=1, num_minibatches=1, checkpoint_every=1,
+               env_options={"episode_limit": 20})
+trainer = Trainer.load(ckpt, out_dir=out) if ckpt.exists() else Trainer("cheetah-2x3", "mat", out_dir=out, **options)
+trainer.learn(10_000_000, progress_bar=False)
+"""
+
+
+def test_kill_9_never_leaves_a_corrupt_checkpoint(tmp_path):
+    script = tmp_path / "train.py"
+    script.write_text(KILL_SCRIPT)
+    out = tmp_path / "run"
+    rng = np.random.default_rng(0)
+    progress, last_write = [], 0
+    for _ in range(4):
+        process = subprocess.Popen(
+            [sys.executable, str(script), str(out)], stderr=subprocess.DEVNULL
+        )
+        deadline = time.time() + 60
+        while time.time() < deadline:  # until this process has written at least once
+            path = out / "checkpoint.pt"
+            if path.exists() and path.stat().st_mtime_ns != last_write:
+                break
+            time.sleep(0.02)
+        time.sleep(rng.uniform(0.0, 0.6))  # then kill it anywhere, mid-write included
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        payload = checkpoint.load(out / "checkpoint.pt")  # would raise on a torn file
+        assert all(torch.isfinite(v).all() for v in payload["model"].values())
+        progress.append(payload["progress"]["updates"])
+        last_write = (out / "checkpoint.pt").stat().st_mtime_ns
+    assert progress == sorted(progress) and progress[-1] > progress[0]  # each resume went on
+
+
+def test_non_finite_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
+    def poison(trainer, metrics):
+        if metrics["updates"] == 2:
+            with torch.no_grad():
+                next(trainer.policy.parameters()).fill_(float("nan"))
+
+    with Trainer(
+        "coordination-3", "mat", out_dir=tmp_path, **{**GAME, "checkpoint_every": 1}
+    ) as trainer, pytest.raises(TrainingDiverged, match="non-finite loss at update 3"):
+        trainer.learn(10_000, progress_bar=False, callback=poison)
+    payload = checkpoint.load(tmp_path / "checkpoint.pt")
+    assert payload["progress"]["updates"] == 2
+    assert all(torch.isfinite(v).all() for v in payload["model"].values())
+
+
+def test_bad_input_gives_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="unknown algo 'ppo'; valid: mat, mat-dec, mappo"):
+        Trainer("coordination-3", "ppo", num_envs=1)
+    with pytest.raises(ValueError, match="unknown environment id"):
+        Trainer("cheetah-9x9", "mat", num_envs=1)
+    with pytest.raises(ValueError, match="unknown training option"):
+        Trainer("coordination-3", "mat", learning_rate=1.0)
+    not_a_checkpoint = tmp_path / "notes.pt"
+    not_a_checkpoint.write_text("hello")
+    with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint"):
+        Trainer.load(not_a_checkpoint)
+    with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at"):
+        Trainer.load(tmp_path / "missing.pt")
+    newer = tmp_path / "newer.pt"
+    torch.save({"format": "mat-checkpoint", "version": 99}, newer)
+    with pytest.raises(checkpoint.CheckpointError, match="version 99, newer"):
+        Trainer.load(newer)
+
+
+def test_every_algo_trains_saves_loads_and_predicts(tmp_path):
+    for algo in ("mat", "mat-dec", "mappo"):
+        with Trainer("hopper-2x2", algo, **TINY) as trainer:
+            trainer.learn(30, progress_bar=False)
+            path = trainer.save(tmp_path / f"{algo}.pt")
+            obs = np.random.default_rng(0).normal(size=(2, trainer.env.obs_dim)).astype(np.float32)
+            expected = trainer.predict(obs)
+        with Trainer.load(path) as loaded:
+            assert np.array_equal(loaded.predict(obs), expected)
+            assert loaded.predict(obs[None]).shape == (1, 2, 2)
