@@ -115,7 +115,10 @@ import pathlib
 ckpt = pathlib.Path(out) / "checkpoint.pt"
 options = dict(num_envs=2, rollout_length=5, ppo_epochs=1, num_minibatches=1, checkpoint_every=1,
                env_options={"episode_limit": 20})
-trainer = Trainer.load(ckpt, out_dir=out) if ckpt.exists() else Trainer("cheetah-2x3", "mat", out_dir=out, **options)
+if ckpt.exists():
+    trainer = Trainer.load(ckpt, out_dir=out)
+else:
+    trainer = Trainer("cheetah-2x3", "mat", out_dir=out, **options)
 trainer.learn(10_000_000, progress_bar=False)
 """
 
