@@ -15,7 +15,7 @@ def user_errors(command: Callable) -> Callable:
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
-        except (ValueError, FileNotFoundError, FileExistsError) as error:
+        except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
             raise click.ClickException(str(error)) from None
         except ImportError as error:
             raise click.ClickException(
@@ -48,6 +48,8 @@ def main() -> None:
     Start here:
       mat envs                          the robots and their agent decompositions
       mat rollout cheetah-6x1           a random team, to see an env work
+      mat train cheetah-6x1 --steps 200000 --out runs/cheetah
+      mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero
       mat bench envs                    env stepping speed
     """
 
@@ -104,6 +106,139 @@ def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None
         episode_return += next(iter(rewards.values()))
     returns.append(episode_return)
     click.echo(f"random team, {steps} steps: episode returns {[round(r, 2) for r in returns]}")
+
+
+def parse_settings(values: tuple[str, ...]) -> dict:
+    """`("lr=3e-4", "shuffle_agents=true")` -> typed values for `TrainConfig` fields."""
+    import json
+
+    settings = {}
+    for value in values:
+        key, sep, raw = value.partition("=")
+        if not sep:
+            raise click.BadParameter(f"{value!r}: use KEY=VALUE", param_hint="--set")
+        try:
+            settings[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            settings[key] = raw
+    return settings
+
+
+@main.command()
+@click.argument("env_id")
+@click.option("--algo", default="mat", show_default=True, help="mat | mat-dec | mappo")
+@click.option("--steps", default=1_000_000, show_default=True, help="Total env steps.")
+@click.option("--num-envs", default=40, show_default=True, help="Env copies per rollout.")
+@click.option(
+    "--workers", default=0, show_default=True, help="Env worker processes (0: in-process)."
+)
+@click.option("--seed", default=0, show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="cpu | cuda | auto")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    help="Run directory [runs/ENV-ALGO-sSEED].",
+)
+@click.option(
+    "--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped."
+)
+@click.option(
+    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="Train on a changed robot."
+)
+@click.option(
+    "--set",
+    "settings",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Any TrainConfig field, e.g. lr=3e-4.",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def train(
+    env_id, algo, steps, num_envs, workers, seed, device, out_dir, resume, faults, settings, quiet
+) -> None:
+    """Train a policy on ENV_ID with PPO (the paper's MA-MuJoCo recipe by default).
+
+    \b
+    Writes OUT/checkpoint.pt (every 10 updates and at the end), OUT/metrics.csv,
+    OUT/tensorboard/ and OUT/learning_curve.png.
+    Example: mat train cheetah-6x1 --steps 2000000 --workers 2 --out runs/cheetah
+    """
+    from pathlib import Path
+
+    from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
+
+    out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
+    ckpt = out / CHECKPOINT_NAME
+    if resume:
+        if not ckpt.exists():
+            raise FileNotFoundError(f"nothing to resume: {ckpt} does not exist")
+        trainer = Trainer.load(ckpt, out_dir=out, device=device, workers=workers)
+        click.echo(f"resuming {ckpt} at {trainer.progress['steps']:,} steps")
+    else:
+        if ckpt.exists():
+            raise FileExistsError(
+                f"{ckpt} exists; pass --resume to continue that run or choose another --out"
+            )
+        trainer = Trainer(
+            env_id,
+            algo,
+            out_dir=out,
+            num_envs=num_envs,
+            workers=workers,
+            seed=seed,
+            device=device,
+            faults=parse_faults(faults),
+            **parse_settings(settings),
+        )
+    with trainer:
+        trainer.learn(steps, progress_bar=not quiet)
+    click.echo(f"checkpoint: {ckpt}")
+    click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+@main.command("eval")
+@click.argument("checkpoint", type=click.Path())
+@click.option("--episodes", default=10, show_default=True)
+@click.option("--env", "env_id", help="Another env the policy can serve [the checkpoint's].")
+@click.option(
+    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="Break a joint or agent."
+)
+@click.option(
+    "--stochastic", is_flag=True, help="Sample actions instead of the deterministic mean/argmax."
+)
+@click.option(
+    "--video", type=click.Path(dir_okay=False), help="Record the first episode to FILE.mp4."
+)
+@click.option("--seed", default=10_000, show_default=True)
+@user_errors
+def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> None:
+    """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default).
+
+    Example: mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
+    """
+    import numpy as np
+
+    from mat_sdk.evaluation import LoadedPolicy
+    from mat_sdk.evaluation import evaluate as run
+
+    loaded = LoadedPolicy.from_checkpoint(checkpoint)
+    returns = run(
+        loaded,
+        episodes,
+        env_id=env_id,
+        faults=parse_faults(faults) if faults else None,
+        deterministic=not stochastic,
+        seed=seed,
+        video=video,
+    )
+    name = env_id or loaded.config["train"]["env"]
+    click.echo(
+        f"{name}: return {np.mean(returns):.2f} +- {np.std(returns):.2f} over {episodes} episodes"
+    )
+    if video:
+        click.echo(f"video: {video}")
 
 
 @main.group()

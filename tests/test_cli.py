@@ -34,3 +34,58 @@ def test_user_mistakes_give_one_line_and_exit_code():
     assert "Traceback" not in result.output
     result = CliRunner().invoke(main, ["rollout", "cheetah-6x1", "--fault", "bfoot"])
     assert result.exit_code != 0 and "NAME=zero or NAME=remove" in result.output
+
+
+TINY_TRAIN = [
+    "--num-envs",
+    "4",
+    "--set",
+    "rollout_length=10",
+    "--set",
+    "num_minibatches=2",
+    "--set",
+    "ppo_epochs=1",
+    "--set",
+    '{"episode_limit": 20}'.join(["env_options=", ""]),
+    "--quiet",
+]
+
+
+def test_train_resume_and_eval_from_the_command_line(tmp_path):
+    out = tmp_path / "run"
+    runner = CliRunner()
+    result = runner.invoke(
+        main, ["train", "hopper-2x2", "--steps", "40", "--out", str(out), *TINY_TRAIN]
+    )
+    assert result.exit_code == 0, result.output
+    assert {p.name for p in out.iterdir()} >= {
+        "checkpoint.pt",
+        "metrics.csv",
+        "tensorboard",
+        "learning_curve.png",
+    }
+    again = runner.invoke(main, ["train", "hopper-2x2", "--steps", "40", "--out", str(out)])
+    assert again.exit_code != 0 and "pass --resume" in again.output
+    resumed = runner.invoke(
+        main, ["train", "hopper-2x2", "--steps", "80", "--out", str(out), "--resume", "--quiet"]
+    )
+    assert resumed.exit_code == 0 and "resuming" in resumed.output
+    assert len((out / "metrics.csv").read_text().splitlines()) == 1 + 3
+    evaluated = runner.invoke(
+        main, ["eval", str(out / "checkpoint.pt"), "--episodes", "2", "--fault", "knee=zero"]
+    )
+    assert evaluated.exit_code == 0, evaluated.output
+    assert "return" in evaluated.output and "+-" in evaluated.output
+
+
+def test_eval_and_train_refuse_bad_input_in_one_line(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00\x01")
+    for args in (
+        ["eval", str(junk)],
+        ["train", "hopper-2x2", "--algo", "ppo"],
+        ["train", "hopper-2x2", "--set", "lr"],
+    ):
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code != 0 and "Traceback" not in result.output, result.output
+    assert "is not a MAT checkpoint" in CliRunner().invoke(main, ["eval", str(junk)]).output

@@ -155,9 +155,12 @@ def test_non_finite_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_p
             with torch.no_grad():
                 next(trainer.policy.parameters()).fill_(float("nan"))
 
-    with Trainer(
-        "coordination-3", "mat", out_dir=tmp_path, **{**GAME, "checkpoint_every": 1}
-    ) as trainer, pytest.raises(TrainingDiverged, match="non-finite loss at update 3"):
+    with (
+        Trainer(
+            "coordination-3", "mat", out_dir=tmp_path, **{**GAME, "checkpoint_every": 1}
+        ) as trainer,
+        pytest.raises(TrainingDiverged, match="non-finite loss at update 3"),
+    ):
         trainer.learn(10_000, progress_bar=False, callback=poison)
     payload = checkpoint.load(tmp_path / "checkpoint.pt")
     assert payload["progress"]["updates"] == 2

@@ -1,0 +1,113 @@
+"""Evaluate a trained policy: episode returns on a (possibly changed) robot, optional video."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mat_sdk import checkpoint, envs
+from mat_sdk.model import ModelConfig, Policy, build_policy
+from mat_sdk.normalization import RunningMeanStd
+
+
+@dataclass
+class LoadedPolicy:
+    """A checkpoint's policy with the observation normaliser it was trained with."""
+
+    policy: Policy
+    obs_norm: RunningMeanStd | None
+    config: dict[str, Any]
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> LoadedPolicy:
+        payload = checkpoint.load(path)
+        policy = build_policy(ModelConfig(**payload["config"]["model"]))
+        policy.load_state_dict(payload["model"])
+        policy.eval()
+        norm = None
+        if payload["config"]["train"]["normalize_obs"]:
+            norm = RunningMeanStd(policy.cfg.obs_dim)
+            norm.load_state_dict(payload["obs_norm"])
+        return cls(policy, norm, payload["config"])
+
+    def act(self, obs: np.ndarray, deterministic: bool = True, generator=None) -> np.ndarray:
+        """Raw observations [B, n, obs_dim] -> actions [B, n, A or 1] (numpy)."""
+        if self.obs_norm is not None:
+            obs = self.obs_norm.normalize(obs)
+        tensor = torch.as_tensor(obs, dtype=torch.float32)
+        actions, _, _ = self.policy.act(tensor, deterministic=deterministic, generator=generator)
+        return actions.numpy()
+
+
+def check_compatible(policy: Policy, vec: Any, env_id: str) -> None:
+    """Refuse an env the policy cannot serve, saying why."""
+    cfg = policy.cfg
+    if vec.obs_dim != cfg.obs_dim:
+        raise ValueError(
+            f"{env_id} gives observations of size {vec.obs_dim}, but the policy was trained on "
+            f"size {cfg.obs_dim}; the robots differ (or one-hot agent ids are on in one and off in "
+            "the other)"
+        )
+    if vec.action_type != cfg.action_type or vec.n_actions != cfg.action_dim:
+        raise ValueError(
+            f"{env_id} has {vec.action_type} actions of size {vec.n_actions}, the policy "
+            f"{cfg.action_type} of size {cfg.action_dim}"
+        )
+    if cfg.algo == "mappo" and vec.n_agents != cfg.n_agents:
+        raise ValueError(
+            f"a MAPPO policy's centralised critic is tied to {cfg.n_agents} agents; "
+            f"{env_id} has {vec.n_agents}"
+        )
+
+
+def evaluate(
+    loaded: LoadedPolicy,
+    episodes: int = 10,
+    env_id: str | None = None,
+    faults: Mapping[str, str] | None = None,
+    deterministic: bool = True,
+    seed: int = 10_000,
+    video: str | Path | None = None,
+    **env_options: Any,
+) -> list[float]:
+    """Returns of `episodes` full episodes, one per env copy, each copy's first episode."""
+    train = loaded.config["train"]
+    env_id = env_id or train["env"]
+    faults = train["faults"] if faults is None else faults
+    options = {**train["env_options"], **env_options}
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    generator = torch.Generator().manual_seed(seed)
+    with envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec:
+        check_compatible(loaded.policy, vec, env_id)
+        obs = vec.reset(seed=seed)
+        returns = np.full(episodes, np.nan)
+        frames = []
+        recorder = envs.make_team(env_id, faults=faults, seed=seed, **options) if video else None
+        if recorder is not None:
+            recorder.reset(seed=seed)
+        while np.isnan(returns).any():
+            actions = loaded.act(obs, deterministic, generator)
+            if recorder is not None and len(frames) < recorder.episode_limit:
+                frames.append(recorder.render())
+                recorder.step(actions[0])
+            obs, _, _, _, info = vec.step(actions)
+            first = info["done"] & np.isnan(returns)
+            returns[first] = info["episode_return"][first]
+    if video:
+        write_video(frames, video, fps=round(1 / recorder.physics.timestep() / recorder.substeps))
+    return returns.tolist()
+
+
+def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Path:
+    import imageio.v2 as imageio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    imageio.mimwrite(path, frames, fps=min(fps, 60), macro_block_size=1)
+    return path
