@@ -55,7 +55,7 @@ def test_train_resume_and_eval_from_the_command_line(tmp_path):
     out = tmp_path / "run"
     runner = CliRunner()
     result = runner.invoke(
-        main, ["train", "hopper-2x2", "--steps", "40", "--out", str(out), *TINY_TRAIN]
+        main, ["train", "hopper-2x2", "--steps", "80", "--out", str(out), *TINY_TRAIN]
     )
     assert result.exit_code == 0, result.output
     assert {p.name for p in out.iterdir()} >= {
@@ -67,7 +67,7 @@ def test_train_resume_and_eval_from_the_command_line(tmp_path):
     again = runner.invoke(main, ["train", "hopper-2x2", "--steps", "40", "--out", str(out)])
     assert again.exit_code != 0 and "pass --resume" in again.output
     resumed = runner.invoke(
-        main, ["train", "hopper-2x2", "--steps", "80", "--out", str(out), "--resume", "--quiet"]
+        main, ["train", "hopper-2x2", "--steps", "120", "--out", str(out), "--resume", "--quiet"]
     )
     assert resumed.exit_code == 0 and "resuming" in resumed.output
     assert len((out / "metrics.csv").read_text().splitlines()) == 1 + 3
