@@ -254,3 +254,21 @@ def bench_envs(seconds: float) -> None:
     from mat_sdk.bench.envs import main as run
 
     run(seconds=seconds)
+
+
+@bench.command("train")
+@click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
+@click.option("--device", default="cpu", show_default=True)
+@click.option(
+    "--compile", "compiled", is_flag=True, help="Also measure torch.compile (~1 min to compile)."
+)
+@click.option("--rounds", default=3, show_default=True, help="Interleaved rounds per variant.")
+@click.option(
+    "--workers", default=0, show_default=True, help="Env worker processes for the rollout."
+)
+@user_errors
+def bench_train(env_id: str, device: str, compiled: bool, rounds: int, workers: int) -> None:
+    """Training throughput (paper recipe): rollout vs update, ours vs an official-style update."""
+    from mat_sdk.bench.train import main as run
+
+    run(env_id, device=device, compiled=compiled, rounds=rounds, workers=workers)

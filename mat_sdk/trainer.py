@@ -60,6 +60,7 @@ class TrainConfig:
     normalize_obs: bool = True
     checkpoint_every: int = 10  # updates
     device: str = "cpu"
+    compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -145,7 +146,10 @@ class Trainer:
             n_block=cfg.n_block,
         )
         self.policy: Policy = build_policy(self.model_config).to(self.device)
-        self.optimizer = torch.optim.Adam(self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps)
+        self.optimizer = torch.optim.Adam(
+            self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps, fused=True
+        )
+        self._loss = torch.compile(self.loss) if cfg.compile else self.loss
         self.value_norm = ValueNorm(device=self.device)
         self.obs_norm = RunningMeanStd(self.env.obs_dim)
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
@@ -351,41 +355,20 @@ class Trainer:
         minibatch = size // cfg.num_minibatches
         if minibatch < 1:
             raise ValueError(f"num_minibatches {cfg.num_minibatches} > env-steps per update {size}")
-        sums = {
-            "policy_loss": 0.0,
-            "value_loss": 0.0,
-            "entropy": 0.0,
-            "clip_fraction": 0.0,
-            "grad_norm": 0.0,
-        }
+        # Accumulate on the device and read once per update: no host sync per minibatch.
+        sums = dict.fromkeys(
+            ("policy_loss", "value_loss", "entropy", "clip_fraction", "grad_norm"), 0.0
+        )
+        finite = torch.ones((), dtype=torch.bool, device=self.device)
         count = 0
         for _ in range(cfg.ppo_epochs):
             permutation = torch.randperm(size, generator=self.shuffle_generator).to(self.device)
             for k in range(cfg.num_minibatches):
                 idx = permutation[k * minibatch : (k + 1) * minibatch]
                 mb = {key: value[idx] for key, value in flat.items()}
-                log_prob, entropy, values = self._evaluate(
-                    mb["obs"], mb["actions"], mb.get("order")
-                )
                 self.value_norm.update(mb["returns"])
-                terms = ppo_loss(
-                    log_prob,
-                    mb["log_probs"],
-                    mb["advantages"],
-                    entropy,
-                    values,
-                    mb["values"],
-                    self.value_norm.normalize(mb["returns"]),
-                    cfg.clip,
-                    cfg.entropy_coef,
-                    cfg.value_coef,
-                    cfg.huber_delta,
-                )
-                if not torch.isfinite(terms.total):
-                    raise TrainingDiverged(
-                        f"non-finite loss at update {self.progress['updates'] + 1} "
-                        f"(minibatch {k}); training stopped, the last good checkpoint is kept"
-                    )
+                terms = self._loss(mb, self.value_norm.normalize(mb["returns"]))
+                finite &= torch.isfinite(terms.total)
                 self.optimizer.zero_grad(set_to_none=True)
                 terms.total.backward()
                 grad_norm = torch.nn.utils.clip_grad_norm_(
@@ -399,9 +382,32 @@ class Trainer:
                     ("clip_fraction", terms.clip_fraction),
                     ("grad_norm", grad_norm),
                 ):
-                    sums[key] += float(value.detach())
+                    sums[key] = sums[key] + value.detach()
                 count += 1
-        return {key: value / count for key, value in sums.items()}
+        if not bool(finite):
+            raise TrainingDiverged(
+                f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
+                "the last good checkpoint is kept"
+            )
+        return {key: float(value) / count for key, value in sums.items()}
+
+    def loss(self, mb: dict[str, torch.Tensor], target_values: torch.Tensor):
+        """PPO loss terms of one minibatch; `target_values` are the normalised returns."""
+        cfg = self.config
+        log_prob, entropy, values = self._evaluate(mb["obs"], mb["actions"], mb.get("order"))
+        return ppo_loss(
+            log_prob,
+            mb["log_probs"],
+            mb["advantages"],
+            entropy,
+            values,
+            mb["values"],
+            target_values,
+            cfg.clip,
+            cfg.entropy_coef,
+            cfg.value_coef,
+            cfg.huber_delta,
+        )
 
     # ------------------------------------------------------------ checkpoints
     def state_payload(self) -> dict[str, Any]:

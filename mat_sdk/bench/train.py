@@ -1,0 +1,135 @@
+"""Training throughput with the paper's MuJoCo recipe, against an official-style update step.
+
+Recipe: 40 envs x rollout 100 = 4,000 env-steps per update; 10 epochs x 40 minibatches of 100
+env-steps (all agents together) = 400 optimizer steps per update. Every update variant runs
+the same 40 minibatches, interleaved round by round.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import torch
+
+from mat_sdk.bench import compare, print_table
+from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
+from mat_sdk.normalization import ValueNorm
+from mat_sdk.trainer import Trainer
+
+
+def _our_step(trainer: Trainer, policy, optimizer, loss_fn):
+    value_norm = ValueNorm(device=trainer.device)
+
+    def step(mb):
+        value_norm.update(mb["returns"])
+        terms = loss_fn(mb, value_norm.normalize(mb["returns"]))
+        optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), trainer.config.max_grad_norm)
+        optimizer.step()
+
+    return step
+
+
+def _reference_step(trainer: Trainer):
+    model = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents).to(trainer.device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5, foreach=False)
+    value_norm = ValueNorm(device=trainer.device)
+
+    def step(mb):
+        loss = official_loss(model, value_norm, mb, trainer.config)
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(
+            model.parameters(), trainer.config.max_grad_norm, foreach=False
+        )
+        optimizer.step()
+
+    return step
+
+
+def _variant(trainer: Trainer, fused: bool, compiled: bool):
+    """Our update step on a private copy of the policy, with the chosen levers."""
+    twin = copy.copy(trainer)
+    twin.policy = copy.deepcopy(trainer.policy)
+    optimizer = torch.optim.Adam(
+        twin.policy.parameters(), lr=trainer.config.lr, eps=1e-5, fused=fused
+    )
+    loss_fn = torch.compile(twin.loss) if compiled else twin.loss
+    return _our_step(twin, twin.policy, optimizer, loss_fn)
+
+
+def main(
+    env_id: str = "cheetah-6x1",
+    device: str = "cpu",
+    compiled: bool = False,
+    rounds: int = 3,
+    workers: int = 0,
+) -> None:
+    trainer = Trainer(
+        env_id, "mat", num_envs=40, rollout_length=100, device=device, workers=workers
+    )
+    try:
+        trainer._rollout()  # warm up the obs normaliser and caches
+        start = time.perf_counter()
+        rollouts = 2
+        for _ in range(rollouts):
+            batch, _ = trainer._rollout()
+        rollout_s = (time.perf_counter() - start) / rollouts
+        flat = {
+            k: v.flatten(0, 1)
+            for k, v in batch.items()
+            if k not in ("rewards", "terminated", "done")
+        }
+        flat["advantages"] = (flat["advantages"] - flat["advantages"].mean()) / (
+            flat["advantages"].std() + 1e-5
+        )
+        size = flat["obs"].shape[0] // 40
+        minibatches = [
+            {k: v[i * size : (i + 1) * size] for k, v in flat.items()} for i in range(40)
+        ]
+        variants = {
+            "reference (official style)": _reference_step(trainer),
+            "ours, foreach Adam": _variant(trainer, fused=False, compiled=False),
+            "ours, fused Adam (default)": _variant(trainer, fused=True, compiled=False),
+        }
+        if compiled:
+            variants["ours, fused Adam + torch.compile"] = _variant(
+                trainer, fused=True, compiled=True
+            )
+        for step in variants.values():  # warm-up (and compilation)
+            step(minibatches[0])
+
+        def epoch(step):
+            def run():
+                for mb in minibatches:
+                    step(mb)
+                if trainer.device.type == "cuda":
+                    torch.cuda.synchronize()
+
+            return run
+
+        times = compare(
+            {name: epoch(step) for name, step in variants.items()},
+            seconds=rounds * len(variants) * 2.0,
+            rounds=rounds,
+        )
+        reference = times["reference (official style)"]
+        rows = []
+        for name, epoch_s in times.items():
+            update_s = 10 * epoch_s  # 10 epochs of 40 minibatches
+            rows.append(
+                {
+                    "update step": name,
+                    "ms / optimizer step": f"{epoch_s / 40 * 1e3:.1f}",
+                    "vs reference": f"{reference / epoch_s:.2f}x",
+                    "update s / 4000 steps": f"{update_s:.2f}",
+                    "rollout s / 4000 steps": f"{rollout_s:.2f}",
+                    "rollout share": f"{rollout_s / (rollout_s + update_s):.0%}",
+                    "env-steps/s": f"{4000 / (rollout_s + update_s):,.0f}",
+                }
+            )
+        print_table(rows, f"Training throughput, paper recipe, {env_id}, device {trainer.device}")
+    finally:
+        trainer.close()
