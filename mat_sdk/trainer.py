@@ -472,11 +472,10 @@ class Trainer:
             return
         self.optimizer.load_state_dict(payload["optimizer"])
         self.progress = dict(payload["progress"])
-        self.generator.set_state(
-            payload["rng"]["torch"].to(self.generator.device)
-            if self.device.type == "cuda"
-            else payload["rng"]["torch"]
-        )
+        if payload["rng"].get("device", "cpu") == self.device.type:
+            self.generator.set_state(payload["rng"]["torch"])
+        else:  # CPU and CUDA generators differ: exact resume needs the same device type
+            self.generator.manual_seed(self.config.seed + self.progress["updates"])
         self.shuffle_generator.set_state(payload["rng"]["shuffle"])
         self.env.set_state(_to_numpy(payload["envs"]))
         self._next_obs = payload["next_obs"].numpy().copy()

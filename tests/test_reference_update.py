@@ -12,7 +12,11 @@ from mat_sdk.trainer import Trainer
 def test_losses_and_gradients_equal_the_official_style_reference():
     with Trainer("cheetah-6x1", "mat", num_envs=4, rollout_length=25, seed=0) as trainer:
         batch, _ = trainer._rollout()
-        mb = {k: v.flatten(0, 1)[:50] for k, v in batch.items() if k not in ("rewards", "terminated", "done")}
+        mb = {
+            k: v.flatten(0, 1)[:50]
+            for k, v in batch.items()
+            if k not in ("rewards", "terminated", "done")
+        }
         with torch.no_grad():  # trained-like weights: unit-gain layers and a moved policy
             for p in trainer.policy.parameters():
                 p.add_(0.05 * torch.randn_like(p))

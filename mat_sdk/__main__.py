@@ -1,0 +1,3 @@
+from mat_sdk.cli import main
+
+main()
