@@ -70,7 +70,7 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
     All three run side by side in interleaved rounds, together with the machine's own
     ceiling: two equal CPU-bound jobs in two processes vs one after the other in one.
     """
-    labels = {0: "in-process", 1: "1 worker process", 2: "2 worker processes"}
+    labels = {0: "in-process", 1: "caller + 1 worker process", 2: "caller + 2 worker processes"}
     vecs = {w: envs.make_vec(env_id, num_envs, workers=w, seed=0) for w in labels}
     pool = mp.get_context("spawn").Pool(2)
     try:

@@ -150,14 +150,18 @@ class TeamFactory:
 class VecTeam:
     """`num_envs` copies of a team: `obs [E, n, obs_dim]`, `reward [E]`, `terminated [E]`...
 
-    `workers=0` steps every copy in this process; `workers=W` splits them over W processes.
+    `workers=0` steps every copy in this process. `workers=W` splits the copies over this
+    process and W worker processes: the caller steps its own share while the workers step
+    theirs, instead of idling while it waits for them.
     """
 
     def __init__(self, make_team: TeamFactory, num_envs: int, workers: int = 0, seed: int = 0):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        if not 0 <= workers <= num_envs:
-            raise ValueError(f"workers must be in [0, num_envs={num_envs}], got {workers}")
+        if not 0 <= workers < num_envs:
+            raise ValueError(
+                f"workers must be in [0, num_envs - 1 = {num_envs - 1}], got {workers}"
+            )
         self.num_envs, self.workers, self.seed = num_envs, workers, seed
         probe = make_team(seed)
         for name in _TEAM_ATTRIBUTES:
@@ -172,13 +176,13 @@ class VecTeam:
         seeds = [seed + i for i in range(num_envs)]
         self._pipes: list[Connection] = []
         self._processes: list[mp.Process] = []
-        if workers == 0:
-            teams = [probe, *(make_team(s) for s in seeds[1:])]
-            self._local = _EnvSlice(teams, 0, self._buffers)
-        else:
+        bounds = np.linspace(0, num_envs, workers + 2).astype(int)  # this process's share first
+        self._slices = bounds
+        teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])]
+        self._local = _EnvSlice(teams, 0, self._buffers)
+        if workers:
             context = mp.get_context("spawn")
-            bounds = np.linspace(0, num_envs, workers + 1).astype(int)
-            for lo, hi in itertools.pairwise(bounds):
+            for lo, hi in itertools.pairwise(bounds[1:]):
                 parent, child = context.Pipe()
                 process = context.Process(
                     target=_worker,
@@ -198,7 +202,6 @@ class VecTeam:
                 self._pipes.append(parent)
                 self._processes.append(process)
             self._wait()
-        self._slices = np.linspace(0, num_envs, max(workers, 1) + 1).astype(int)
         self._closed = False
 
     def reset(self, seed: int | None = None) -> np.ndarray:
@@ -222,7 +225,7 @@ class VecTeam:
             raise ValueError(f"env {env}, {self.agents[agent]}: action contains NaN or inf")
         b = self._buffers
         b.actions[:] = actions
-        self._run("step", [()] * max(self.workers, 1))
+        self._run("step", [()] * (self.workers + 1))
         done = b.terminated | b.truncated
         info = {
             "final_obs": b.final_obs.copy(),
@@ -233,12 +236,12 @@ class VecTeam:
         return b.obs.copy(), b.reward.copy(), b.terminated.copy(), b.truncated.copy(), info
 
     def state(self) -> np.ndarray:
-        self._run("state", [()] * max(self.workers, 1))
+        self._run("state", [()] * (self.workers + 1))
         return self._buffers.state.copy()
 
     def get_state(self) -> list[dict]:
         """Per copy: its full simulation state and episode progress (picklable numpy)."""
-        return [s for part in self._run("get_state", [()] * max(self.workers, 1)) for s in part]
+        return [s for part in self._run("get_state", [()] * (self.workers + 1)) for s in part]
 
     def set_state(self, states: list[dict]) -> None:
         if len(states) != self.num_envs:
@@ -271,11 +274,10 @@ class VecTeam:
         """Run `_EnvSlice.<command>(*arguments[k])` on every slice k; their results in order."""
         if self._closed:
             raise RuntimeError("this vectorised env is closed")
-        if self.workers == 0:
-            return [getattr(self._local, command)(*arguments[0])]
-        for pipe, argument in zip(self._pipes, arguments, strict=True):
+        for pipe, argument in zip(self._pipes, arguments[1:], strict=True):
             pipe.send((command, argument))
-        return self._wait()
+        local = getattr(self._local, command)(*arguments[0])
+        return [local, *self._wait()]
 
     def _wait(self) -> list:
         results, errors = [], []
