@@ -2,21 +2,9 @@
 
 import pytest
 import torch
-from torch import nn
+from helpers import trained_like
 
 from mat_sdk.model import MAT, ModelConfig, build_policy
-
-
-def trained_like(policy: nn.Module) -> nn.Module:
-    """Replace the near-zero official init (gain 0.01) with unit-gain weights, as after training,
-    so that every layer and every earlier action visibly matters."""
-    with torch.no_grad():
-        for module in policy.modules():
-            if isinstance(module, nn.Linear):
-                nn.init.orthogonal_(module.weight)
-                if module.bias is not None:
-                    nn.init.normal_(module.bias, std=0.1)
-    return policy
 
 
 @pytest.mark.parametrize("action_type", ["continuous", "discrete"])

@@ -1,0 +1,325 @@
+"""Checkpoint -> ONNX bundle (DESIGN §5), verified against torch before anything is written.
+
+    mat_export.export("runs/cheetah/checkpoint.pt", "cheetah_onnx")
+
+The bundle is built in a temporary directory beside the target and renamed into place only
+after ORT matched torch on every agent count tried; a failed export leaves nothing behind,
+and an existing bundle is replaced only with `force=True`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import torch
+from mat_export.graphs import (
+    DecentralisedStepGraph,
+    EncoderGraph,
+    MATStepGraph,
+    ObsNormalizer,
+    ValueScale,
+    cache_names,
+)
+
+from mat_sdk import checkpoint
+from mat_sdk.model import MAT, ModelConfig, build_policy
+from mat_sdk.normalization import ValueNorm
+
+FORMAT = "mat-onnx"
+VERSION = 1
+OPSET = 20
+PARITY_LIMIT = 1e-4
+AGENT_COUNTS = (1, 2, 6, 17, 64)
+STANDARD_DOMAINS = ("", "ai.onnx")
+
+
+class ExportError(ValueError):
+    """The export was refused or failed; nothing was written."""
+
+
+def export(
+    checkpoint_path: str | Path, out_dir: str | Path, force: bool = False, agent_counts=AGENT_COUNTS
+) -> dict[str, Any]:
+    """Write `encoder.onnx`, `decoder_step.onnx` and `manifest.json`; returns the manifest."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not force:
+        raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
+    payload = checkpoint.load(checkpoint_path)
+    policy, normalizer, value_scale = _rebuild(payload)
+    cfg = policy.cfg
+    counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        graphs = _export_graphs(policy, normalizer, value_scale, staging)
+        parity = measure_parity(policy, normalizer, value_scale, staging, counts)
+        worst = max(parity["max_abs_diff"].values())
+        if not worst <= PARITY_LIMIT:
+            raise ExportError(
+                f"ONNX Runtime disagrees with torch by {worst:.3g} (> {PARITY_LIMIT}); "
+                "no bundle written"
+            )
+        manifest = _manifest(payload, cfg, graphs, parity, counts, checkpoint_path)
+        for name in graphs:
+            _finish_graph(staging / name, manifest)
+        manifest["graphs"] = {
+            name: {**io, "sha256": _sha256(staging / name)} for name, io in graphs.items()
+        }
+        (staging / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        staging.rename(out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return manifest
+
+
+def _rebuild(payload: dict) -> tuple[Any, ObsNormalizer, ValueScale]:
+    cfg = ModelConfig(**payload["config"]["model"])
+    policy = build_policy(cfg)
+    policy.load_state_dict(payload["model"])
+    policy.eval()
+    norm = payload["obs_norm"] if payload["config"]["train"]["normalize_obs"] else None
+    normalizer = ObsNormalizer(
+        None if norm is None else norm["mean"], None if norm is None else norm["var"], cfg.obs_dim
+    )
+    value_norm = ValueNorm()
+    value_norm.load_state_dict(payload["value_norm"])
+    mean, var = value_norm.mean_var()
+    return policy, normalizer.eval(), ValueScale(float(mean), float(var.sqrt())).eval()
+
+
+def _dims() -> dict[str, Any]:
+    from torch.export import Dim
+
+    return {
+        "batch": Dim("batch", min=1, max=1 << 20),
+        "agents": Dim("agents", min=1, max=1 << 16),
+        "past": Dim("past", min=0, max=1 << 16),
+    }
+
+
+def _export_graphs(policy, normalizer, value_scale, directory: Path) -> dict[str, dict]:
+    """Export both graphs; returns their input/output names."""
+    cfg, dims = policy.cfg, _dims()
+    batch, n = 3, cfg.n_agents if cfg.algo == "mappo" else 5  # trace with sizes >= 2
+    obs = torch.randn(batch, n, cfg.obs_dim)
+    agents_dim = {} if cfg.algo == "mappo" else {1: dims["agents"]}
+    graphs = {}
+    encoder = EncoderGraph(policy, normalizer, value_scale)
+    graphs["encoder.onnx"] = _export(
+        encoder,
+        (obs,),
+        {"obs": {0: dims["batch"], **agents_dim}},
+        ["obs"],
+        ["rep", "values"],
+        directory / "encoder.onnx",
+    )
+    discrete = cfg.action_type == "discrete"
+    head = ["logits"] if discrete else ["mean", "std"]
+    mask = (
+        [torch.ones(batch, 1 if isinstance(policy, MAT) else n, cfg.action_dim)] if discrete else []
+    )
+    if isinstance(policy, MAT):
+        head_dim, n_cache = cfg.n_embd // cfg.n_head, 4 * cfg.n_block
+        past = [torch.randn(batch, cfg.n_head, 4, head_dim) for _ in range(n_cache)]
+        names = cache_names(cfg.n_block)
+        token = torch.randn(batch, 1, policy.decoder.token_dim)
+        rep = torch.randn(batch, 1, cfg.n_embd)
+        inputs = ["rep", "token", *(p for p, _ in names), *(["available"] if discrete else [])]
+        varargs = [{0: dims["batch"], 2: dims["past"]} for _ in names]
+        varargs += [{0: dims["batch"]}] if discrete else []
+        shapes = ({0: dims["batch"]}, {0: dims["batch"]}, tuple(varargs))  # rep, token, *rest
+        graphs["decoder_step.onnx"] = _export(
+            MATStepGraph(policy),
+            (rep, token, *past, *mask),
+            shapes,
+            inputs,
+            [*head, *(q for _, q in names)],
+            directory / "decoder_step.onnx",
+        )
+    else:
+        inputs = ["rep", *(["available"] if discrete else [])]
+        per_agent = {0: dims["batch"], **agents_dim}
+        shapes = (per_agent, (per_agent,)) if discrete else (per_agent,)  # obs, *mask
+        graphs["decoder_step.onnx"] = _export(
+            DecentralisedStepGraph(policy),
+            (normalizer(obs), *mask),
+            shapes,
+            inputs,
+            head,
+            directory / "decoder_step.onnx",
+        )
+    return graphs
+
+
+def _export(module, args, dynamic_shapes, inputs, outputs, path: Path) -> dict:
+    registry_log = logging.getLogger("torch.onnx._internal.exporter._registration")
+    level = registry_log.level
+    registry_log.setLevel(logging.ERROR)  # "torchvision is not installed" is noise for us
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            module,
+            args,
+            dynamo=True,
+            opset_version=OPSET,
+            dynamic_shapes=dynamic_shapes,
+            input_names=inputs,
+            output_names=outputs,
+            verbose=False,
+        )
+    registry_log.setLevel(level)
+    program.save(str(path))
+    return {"inputs": inputs, "outputs": outputs}
+
+
+def _finish_graph(path: Path, manifest: dict) -> None:
+    """Self-describing metadata, full checker, standard ops only; saved deterministically."""
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for key in (
+        "format",
+        "version",
+        "algo",
+        "kind",
+        "obs_dim",
+        "action",
+        "model",
+        "opset",
+        "agents",
+        "env_id",
+    ):
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, json.dumps(manifest[key])
+    model.producer_name, model.producer_version = "mat-sdk", str(manifest["version"])
+    onnx.checker.check_model(model, full_check=True)
+    foreign = {node.domain for node in model.graph.node} - set(STANDARD_DOMAINS)
+    if foreign:
+        raise ExportError(f"{path.name} uses non-standard op domains {sorted(foreign)}")
+    path.write_bytes(model.SerializeToString(deterministic=True))
+
+
+def _manifest(payload, cfg: ModelConfig, graphs, parity, counts, checkpoint_path) -> dict:
+    env = payload["config"]["env"]
+    token = cfg.action_dim + 1 if cfg.action_type == "discrete" else cfg.action_dim
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "algo": cfg.algo,
+        "kind": "autoregressive" if cfg.algo == "mat" else "decentralised",
+        "obs_dim": cfg.obs_dim,
+        "action": {
+            "type": cfg.action_type,
+            "size": cfg.action_dim,
+            "low": env.get("action_low", -1.0),
+            "high": env.get("action_high", 1.0),
+            "token_size": token,
+        },
+        "model": {"n_embd": cfg.n_embd, "n_head": cfg.n_head, "n_block": cfg.n_block},
+        "opset": OPSET,
+        "agents": {
+            "min": cfg.n_agents if cfg.algo == "mappo" else 1,
+            "max": cfg.n_agents if cfg.algo == "mappo" else None,
+            "trained": cfg.n_agents,
+            "names": env.get("agents"),
+        },
+        "env_id": env.get("id"),
+        "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
+        if cfg.algo == "mat"
+        else [],
+        "parity": parity,
+        "checkpoint": {
+            "sha256": _sha256(Path(checkpoint_path)),
+            "steps": payload["progress"]["steps"],
+        },
+        "graphs": {name: io for name, io in graphs.items()},
+    }
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> dict:
+    """Max |ORT - torch| per agent count: values, teacher-forced and autoregressive decoding."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    encoder = ort.InferenceSession(str(directory / "encoder.onnx"), options)
+    step = ort.InferenceSession(str(directory / "decoder_step.onnx"), options)
+    cfg, rng = policy.cfg, np.random.default_rng(0)
+    result: dict[str, float] = {}
+    for n in counts:
+        obs = (2.0 * rng.standard_normal((2, n, cfg.obs_dim))).astype(np.float32)
+        with torch.no_grad():
+            x = normalizer(torch.from_numpy(obs))
+            actions, _, values = policy.act(x, deterministic=True)
+            params, _ = policy.action_params(x, actions)
+            torch_values = value_scale(values).numpy()
+        rep, ort_values = encoder.run(None, {"obs": obs})
+        forced = decode_with_ort(policy, step, rep, actions.numpy())
+        free = decode_with_ort(policy, step, rep, None)
+        diffs = [
+            np.abs(ort_values - torch_values).max(),
+            np.abs(forced["params"] - params.numpy()).max(),
+            np.abs(free["params"] - params.numpy()).max(),
+        ]
+        if cfg.action_type == "continuous":
+            diffs.append(np.abs(free["actions"] - actions.numpy()).max())
+        elif not np.array_equal(free["actions"], actions.numpy()):
+            diffs.append(float("inf"))  # a different discrete choice
+        result[str(n)] = float(max(diffs))
+    return {"max_abs_diff": result, "limit": PARITY_LIMIT, "agent_counts": list(counts)}
+
+
+def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | None) -> dict:
+    """Deterministic decode with the step graph; `forced_actions` feeds given actions instead."""
+    cfg = policy.cfg
+    discrete = cfg.action_type == "discrete"
+    batch, n = rep.shape[:2]
+    if not isinstance(policy, MAT):
+        feed = {"rep": rep}
+        if discrete:
+            feed["available"] = np.ones((batch, n, cfg.action_dim), np.float32)
+        params = step.run(None, feed)[0]
+        actions = params.argmax(-1)[..., None].astype(np.float32) if discrete else params
+        return {"params": params, "actions": actions}
+    head_dim = cfg.n_embd // cfg.n_head
+    names = cache_names(cfg.n_block)
+    past = {p: np.zeros((batch, cfg.n_head, 0, head_dim), np.float32) for p, _ in names}
+    token = np.zeros((batch, 1, policy.decoder.token_dim), np.float32)
+    if discrete:
+        token[:, 0, 0] = 1.0
+    all_params, all_actions = [], []
+    for i in range(n):
+        feed = {"rep": rep[:, i : i + 1], "token": token, **past}
+        if discrete:
+            feed["available"] = np.ones((batch, 1, cfg.action_dim), np.float32)
+        out = step.run(None, feed)
+        params = out[0]
+        past = {p: value for (p, _), value in zip(names, out[-len(names) :], strict=True)}
+        action = params.argmax(-1)[..., None].astype(np.float32) if discrete else params
+        chosen = action if forced_actions is None else forced_actions[:, i : i + 1]
+        all_params.append(params)
+        all_actions.append(action)
+        if discrete:
+            token = np.zeros_like(token)
+            token[np.arange(batch), 0, 1 + chosen[:, 0, 0].astype(int)] = 1.0
+        else:
+            token = chosen.astype(np.float32)
+    return {"params": np.concatenate(all_params, 1), "actions": np.concatenate(all_actions, 1)}

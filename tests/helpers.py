@@ -1,0 +1,16 @@
+"""Helpers shared by the tests."""
+
+import torch
+from torch import nn
+
+
+def trained_like(policy: nn.Module) -> nn.Module:
+    """Replace the near-zero official init (gain 0.01) with unit-gain weights, as after training,
+    so that every layer and every earlier action visibly matters."""
+    with torch.no_grad():
+        for module in policy.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.orthogonal_(module.weight)
+                if module.bias is not None:
+                    nn.init.normal_(module.bias, std=0.1)
+    return policy

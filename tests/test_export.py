@@ -1,0 +1,153 @@
+"""ONNX export: parity with torch, self-describing deterministic bundles, loud refusals."""
+
+import hashlib
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from click.testing import CliRunner
+from helpers import trained_like
+from mat_export import ExportError, export
+from mat_export import exporter as exporter_module
+
+from mat_sdk import checkpoint
+from mat_sdk.cli import main
+from mat_sdk.trainer import Trainer
+
+TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
+
+
+def make_checkpoint(path, env_id="hopper-2x2", algo="mat", **options):
+    with Trainer(env_id, algo, **TINY, **options) as trainer:
+        trainer.learn(20, progress_bar=False)
+        trained_like(trainer.policy)  # unit-gain weights: parity must hold on a real-scale net
+        return trainer.save(path)
+
+
+@pytest.fixture(scope="module")
+def mat_checkpoint(tmp_path_factory):
+    return make_checkpoint(tmp_path_factory.mktemp("ckpt") / "mat.pt", n_block=2, n_head=2)
+
+
+def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path):
+    manifest = export(mat_checkpoint, tmp_path / "bundle")
+    bundle = tmp_path / "bundle"
+    assert sorted(p.name for p in bundle.iterdir()) == [
+        "decoder_step.onnx",
+        "encoder.onnx",
+        "manifest.json",
+    ]
+    diffs = manifest["parity"]["max_abs_diff"]
+    assert list(diffs) == ["1", "2", "6", "17", "64"]
+    assert max(diffs.values()) <= 1e-5
+    on_disk = json.loads((bundle / "manifest.json").read_text())
+    assert on_disk["format"] == "mat-onnx" and on_disk["kind"] == "autoregressive"
+    assert on_disk["action"] == {
+        "type": "continuous",
+        "size": 2,
+        "low": -1.0,
+        "high": 1.0,
+        "token_size": 2,
+    }
+    step = on_disk["graphs"]["decoder_step.onnx"]
+    assert (
+        "past_key_values.1.attn2.value" in step["inputs"]
+        and "present.1.attn2.value" in step["outputs"]
+    )
+    for name, entry in on_disk["graphs"].items():
+        assert hashlib.sha256((bundle / name).read_bytes()).hexdigest() == entry["sha256"]
+        model = onnx.load(str(bundle / name))
+        onnx.checker.check_model(model, full_check=True)
+        assert {node.domain for node in model.graph.node} <= {"", "ai.onnx"}
+        props = {p.key: json.loads(p.value) for p in model.metadata_props}
+        assert props["obs_dim"] == on_disk["obs_dim"] and props["algo"] == "mat"
+
+
+def test_export_is_deterministic(mat_checkpoint, tmp_path):
+    export(mat_checkpoint, tmp_path / "a")
+    export(mat_checkpoint, tmp_path / "b")
+    for name in ("encoder.onnx", "decoder_step.onnx", "manifest.json"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+
+
+@pytest.mark.parametrize(
+    ("env_id", "algo", "kind", "counts"),
+    [
+        ("coordination-3", "mat", "autoregressive", ["1", "2", "6", "17", "64"]),
+        ("hopper-2x2", "mat-dec", "decentralised", ["1", "2", "6", "17", "64"]),
+        ("coordination-3", "mappo", "decentralised", ["3"]),
+    ],
+)
+def test_discrete_and_baseline_policies_export(tmp_path, env_id, algo, kind, counts):
+    manifest = export(make_checkpoint(tmp_path / "c.pt", env_id, algo), tmp_path / "bundle")
+    assert manifest["kind"] == kind and list(manifest["parity"]["max_abs_diff"]) == counts
+    assert max(manifest["parity"]["max_abs_diff"].values()) <= 1e-5
+    if manifest["action"]["type"] == "discrete":
+        assert "available" in manifest["graphs"]["decoder_step.onnx"]["inputs"]
+
+
+def test_disagreement_refuses_and_leaves_nothing(mat_checkpoint, tmp_path, monkeypatch):
+    monkeypatch.setattr(exporter_module, "PARITY_LIMIT", -1.0)
+    with pytest.raises(ExportError, match="disagrees with torch"):
+        export(mat_checkpoint, tmp_path / "bundle")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_input_is_refused_and_nothing_is_overwritten(mat_checkpoint, tmp_path):
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    with pytest.raises(ExportError, match="exists; pass --force"):
+        export(mat_checkpoint, existing)
+    assert (existing / "keep.txt").read_text() == "mine"
+    with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at"):
+        export(tmp_path / "missing.pt", tmp_path / "out")
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not torch")
+    with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint"):
+        export(junk, tmp_path / "out")
+    newer = tmp_path / "newer.pt"
+    torch.save({"format": "mat-checkpoint", "version": 2}, newer)
+    with pytest.raises(checkpoint.CheckpointError, match="newer than this SDK"):
+        export(newer, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_mat_export_command(mat_checkpoint, tmp_path):
+    out = tmp_path / "cli_bundle"
+    result = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "max abs diff" in result.output and (out / "manifest.json").exists()
+    again = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out)])
+    assert (
+        again.exit_code != 0 and "pass --force" in again.output and "Traceback" not in again.output
+    )
+    forced = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out), "--force"])
+    assert forced.exit_code == 0, forced.output
+
+
+def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, tmp_path):
+    import onnxruntime as ort
+
+    export(mat_checkpoint, tmp_path / "bundle")
+    payload = checkpoint.load(mat_checkpoint)
+    obs = (
+        np.random.default_rng(1)
+        .normal(size=(1, 2, payload["config"]["env"]["obs_dim"]))
+        .astype(np.float32)
+    )
+    session = ort.InferenceSession(str(tmp_path / "bundle" / "encoder.onnx"))
+    _, values = session.run(None, {"obs": obs})
+    from mat_sdk.evaluation import LoadedPolicy
+    from mat_sdk.normalization import ValueNorm
+
+    loaded = LoadedPolicy.from_checkpoint(mat_checkpoint)
+    value_norm = ValueNorm()
+    value_norm.load_state_dict(payload["value_norm"])
+    with torch.no_grad():
+        expected = value_norm.denormalize(
+            loaded.policy.values(torch.from_numpy(loaded.obs_norm.normalize(obs)))
+        )
+    np.testing.assert_allclose(values, expected.numpy(), atol=1e-5)
