@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import onnx
 import torch
+from mat_export.decode_graph import build_decode
 from mat_export.graphs import (
     DecentralisedStepGraph,
     EncoderGraph,
@@ -62,6 +63,18 @@ def export(
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         graphs = _export_graphs(policy, normalizer, value_scale, staging)
+        manifest = _manifest(payload, cfg, graphs, checkpoint_path)
+        decode = build_decode(
+            onnx.load(str(staging / "encoder.onnx")),
+            onnx.load(str(staging / "decoder_step.onnx")),
+            manifest,
+        )
+        (staging / "decode.onnx").write_bytes(decode.SerializeToString())
+        graphs["decode.onnx"] = {
+            "inputs": [i.name for i in decode.graph.input],
+            "outputs": [o.name for o in decode.graph.output],
+        }
+        manifest["graphs"] = dict(graphs)
         parity = measure_parity(policy, normalizer, value_scale, staging, counts)
         worst = max(parity["max_abs_diff"].values())
         if not worst <= PARITY_LIMIT:
@@ -69,7 +82,7 @@ def export(
                 f"ONNX Runtime disagrees with torch by {worst:.3g} (> {PARITY_LIMIT}); "
                 "no bundle written"
             )
-        manifest = _manifest(payload, cfg, graphs, parity, counts, checkpoint_path)
+        manifest["parity"] = parity
         for name in graphs:
             _finish_graph(staging / name, manifest)
         manifest["graphs"] = {
@@ -213,7 +226,7 @@ def _finish_graph(path: Path, manifest: dict) -> None:
     path.write_bytes(model.SerializeToString(deterministic=True))
 
 
-def _manifest(payload, cfg: ModelConfig, graphs, parity, counts, checkpoint_path) -> dict:
+def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
     env = payload["config"]["env"]
     token = cfg.action_dim + 1 if cfg.action_type == "discrete" else cfg.action_dim
     return {
@@ -241,7 +254,6 @@ def _manifest(payload, cfg: ModelConfig, graphs, parity, counts, checkpoint_path
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
         if cfg.algo == "mat"
         else [],
-        "parity": parity,
         "checkpoint": {
             "sha256": _sha256(Path(checkpoint_path)),
             "steps": payload["progress"]["steps"],
@@ -262,6 +274,7 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
     options.intra_op_num_threads = 1
     encoder = ort.InferenceSession(str(directory / "encoder.onnx"), options)
     step = ort.InferenceSession(str(directory / "decoder_step.onnx"), options)
+    decode = ort.InferenceSession(str(directory / "decode.onnx"), options)
     cfg, rng = policy.cfg, np.random.default_rng(0)
     result: dict[str, float] = {}
     for n in counts:
@@ -279,12 +292,64 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
             np.abs(forced["params"] - params.numpy()).max(),
             np.abs(free["params"] - params.numpy()).max(),
         ]
-        if cfg.action_type == "continuous":
-            diffs.append(np.abs(free["actions"] - actions.numpy()).max())
-        elif not np.array_equal(free["actions"], actions.numpy()):
-            diffs.append(float("inf"))  # a different discrete choice
+        noise = rng.standard_normal((2, n, cfg.action_dim)).astype(np.float32)
+        if cfg.action_type == "discrete":
+            noise = -np.log(-np.log(rng.uniform(1e-9, 1.0, noise.shape))).astype(np.float32)
+        sampled, sampled_params = torch_decode(policy, x, torch.from_numpy(noise))
+        pairs = [(free["actions"], actions.numpy())]
+        for given, (expected, expected_params) in (
+            (np.zeros_like(noise), (actions.numpy(), params.numpy())),
+            (noise, (sampled.numpy(), sampled_params.numpy())),
+        ):
+            feed = {"obs": obs, "noise": given}
+            if cfg.action_type == "discrete":
+                feed["available"] = np.ones_like(noise)
+            got = dict(
+                zip([o.name for o in decode.get_outputs()], decode.run(None, feed), strict=True)
+            )
+            diffs.append(
+                np.abs(
+                    got["logits" if cfg.action_type == "discrete" else "mean"] - expected_params
+                ).max()
+            )
+            diffs.append(np.abs(got["values"] - torch_values).max())
+            pairs.append((got["actions"], expected))
+        for got, expected in pairs:
+            if cfg.action_type == "continuous":
+                diffs.append(np.abs(got - expected).max())
+            elif not np.array_equal(got, expected):
+                diffs.append(float("inf"))  # a different discrete choice
         result[str(n)] = float(max(diffs))
     return {"max_abs_diff": result, "limit": PARITY_LIMIT, "agent_counts": list(counts)}
+
+
+def torch_decode(policy, x: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The torch policy sampling with given noise, as `decode.onnx` does: (actions, params)."""
+    discrete = policy.cfg.action_type == "discrete"
+
+    def sample(params):
+        if discrete:
+            return (params + noise_i).argmax(-1, keepdim=True).float()
+        return params + policy.std() * noise_i
+
+    with torch.no_grad():
+        if not isinstance(policy, MAT):
+            noise_i = noise
+            params = policy.actor(x)
+            return sample(params), params
+        rep, _ = policy.encoder(x)
+        token = torch.zeros(x.shape[0], 1, policy.decoder.token_dim)
+        if discrete:
+            token[:, 0, 0] = 1.0
+        past, actions, all_params = None, [], []
+        for i in range(x.shape[1]):
+            params, past = policy.decode_step(token, rep[:, i : i + 1], past)
+            noise_i = noise[:, i : i + 1]
+            action = sample(params)
+            actions.append(action)
+            all_params.append(params)
+            token = policy.action_token(action)
+        return torch.cat(actions, 1), torch.cat(all_params, 1)
 
 
 def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | None) -> dict:

@@ -290,6 +290,16 @@ def bench_envs(seconds: float) -> None:
     run(seconds=seconds)
 
 
+@bench.command("decode")
+@click.option("--seconds", default=1.0, show_default=True, help="Time per measured variant.")
+@user_errors
+def bench_decode(seconds: float) -> None:
+    """decode.onnx (one ORT call per control step) vs the step graph called per agent."""
+    from mat_export.bench import main as run
+
+    run(seconds=seconds)
+
+
 @bench.command("train")
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--device", default="cpu", show_default=True)

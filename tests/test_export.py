@@ -35,6 +35,7 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path)
     manifest = export(mat_checkpoint, tmp_path / "bundle")
     bundle = tmp_path / "bundle"
     assert sorted(p.name for p in bundle.iterdir()) == [
+        "decode.onnx",
         "decoder_step.onnx",
         "encoder.onnx",
         "manifest.json",
@@ -68,7 +69,7 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path)
 def test_export_is_deterministic(mat_checkpoint, tmp_path):
     export(mat_checkpoint, tmp_path / "a")
     export(mat_checkpoint, tmp_path / "b")
-    for name in ("encoder.onnx", "decoder_step.onnx", "manifest.json"):
+    for name in ("encoder.onnx", "decoder_step.onnx", "decode.onnx", "manifest.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 
 
@@ -151,3 +152,28 @@ def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, tmp_path
             loaded.policy.values(torch.from_numpy(loaded.obs_norm.normalize(obs)))
         )
     np.testing.assert_allclose(values, expected.numpy(), atol=1e-5)
+
+
+def test_decode_graph_runs_the_whole_control_step_and_samples_from_given_noise(
+    mat_checkpoint, tmp_path
+):
+    import onnxruntime as ort
+
+    from mat_sdk.evaluation import LoadedPolicy
+
+    export(mat_checkpoint, tmp_path / "bundle")
+    session = ort.InferenceSession(str(tmp_path / "bundle" / "decode.onnx"))
+    assert [i.name for i in session.get_inputs()] == ["obs", "noise"]
+    assert [o.name for o in session.get_outputs()] == ["actions", "mean", "std", "values"]
+    loaded = LoadedPolicy.from_checkpoint(mat_checkpoint)
+    rng = np.random.default_rng(3)
+    for n in (1, 5, 33):  # any agent count, one call
+        obs = rng.normal(size=(2, n, loaded.policy.cfg.obs_dim)).astype(np.float32)
+        zero = np.zeros((2, n, 2), np.float32)
+        actions, mean, _, _ = session.run(None, {"obs": obs, "noise": zero})
+        np.testing.assert_allclose(actions, mean)
+        np.testing.assert_allclose(actions, loaded.act(obs), atol=1e-5)  # zero noise = the mean
+        noise = rng.normal(size=(2, n, 2)).astype(np.float32)
+        sampled, sampled_mean, sampled_std, _ = session.run(None, {"obs": obs, "noise": noise})
+        np.testing.assert_allclose(sampled, sampled_mean + sampled_std * noise, atol=1e-6)
+        assert not np.allclose(sampled, actions)
