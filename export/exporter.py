@@ -204,20 +204,9 @@ def _finish_graph(path: Path, manifest: dict) -> None:
     """Self-describing metadata, full checker, standard ops only; saved deterministically."""
     model = onnx.load(str(path))
     del model.metadata_props[:]
-    for key in (
-        "format",
-        "version",
-        "algo",
-        "kind",
-        "obs_dim",
-        "action",
-        "model",
-        "opset",
-        "agents",
-        "env_id",
-    ):
+    for key, value in manifest.items():  # every field; the hashes cannot describe themselves
         entry = model.metadata_props.add()
-        entry.key, entry.value = key, json.dumps(manifest[key])
+        entry.key, entry.value = key, json.dumps(value)
     model.producer_name, model.producer_version = "mat-sdk", str(manifest["version"])
     onnx.checker.check_model(model, full_check=True)
     foreign = {node.domain for node in model.graph.node} - set(STANDARD_DOMAINS)

@@ -89,3 +89,17 @@ def test_eval_and_train_refuse_bad_input_in_one_line(tmp_path):
         result = CliRunner().invoke(main, args)
         assert result.exit_code != 0 and "Traceback" not in result.output, result.output
     assert "is not a MAT checkpoint" in CliRunner().invoke(main, ["eval", str(junk)]).output
+
+
+def test_export_command_refuses_bad_input_in_one_line(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not a checkpoint")
+    for args, message in (
+        (["export", str(tmp_path / "missing.pt")], "no checkpoint at"),
+        (["export", str(junk), "-o", str(tmp_path / "out")], "is not a MAT checkpoint"),
+    ):
+        result = CliRunner().invoke(main, args)
+        assert (
+            result.exit_code != 0 and message in result.output and "Traceback" not in result.output
+        )
+    assert not (tmp_path / "out").exists()
