@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+from helpers import GAME
 
 from mat_sdk.model import MAT, ModelConfig
 from mat_sdk.trainer import Trainer
@@ -24,16 +25,7 @@ def test_cached_decoding_equals_teacher_forcing_on_cuda():
 
 
 def test_cuda_trainer_learns_the_coordination_game_and_checkpoints_load_on_cpu(tmp_path):
-    options = {
-        "num_envs": 32,
-        "rollout_length": 8,
-        "lr": 5e-4,
-        "ppo_epochs": 4,
-        "num_minibatches": 2,
-        "clip": 0.2,
-        "entropy_coef": 0.01,
-        "device": "cuda",
-    }
+    options = {**GAME, "device": "cuda"}
     returns = []
     with Trainer("coordination-3", "mat", out_dir=tmp_path, **options) as trainer:
         assert next(trainer.policy.parameters()).is_cuda

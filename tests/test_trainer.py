@@ -9,19 +9,10 @@ import time
 import numpy as np
 import pytest
 import torch
+from helpers import GAME
 
 from mat_sdk import checkpoint, envs
 from mat_sdk.trainer import Trainer, TrainingDiverged
-
-GAME = {
-    "num_envs": 32,
-    "rollout_length": 8,
-    "lr": 5e-4,
-    "ppo_epochs": 4,
-    "num_minibatches": 2,
-    "clip": 0.2,
-    "entropy_coef": 0.01,
-}
 
 
 def train_returns(env_id, algo, steps, **options):
