@@ -63,25 +63,36 @@ def read_metrics(path: Path) -> list[dict]:
 
 
 def plot_curve(metrics_path: Path, png_path: Path, title: str | None = None) -> Path | None:
-    """Episode return (mean, min-max band) against env steps."""
+    """One run's episode return (mean, min-max band) against env steps."""
+    return plot_runs({Path(metrics_path).parent.name: metrics_path}, png_path, title)
+
+
+def plot_runs(runs: dict[str, Path], png_path: Path, title: str | None = None) -> Path | None:
+    """Several runs' episode returns (mean line, min-max band) against env steps, one figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in read_metrics(metrics_path) if r["return_mean"] not in ("", "nan")]
-    if not rows:
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plotted = False
+    for label, metrics_path in runs.items():
+        rows = [r for r in read_metrics(metrics_path) if r["return_mean"] not in ("", "nan")]
+        if not rows:
+            continue
+        steps = [int(r["steps"]) for r in rows]
+        mean = [float(r["return_mean"]) for r in rows]
+        low = [float(r["return_min"]) for r in rows]
+        high = [float(r["return_max"]) for r in rows]
+        ax.plot(steps, mean, label=f"{label} (mean)")
+        ax.fill_between(steps, low, high, alpha=0.2)
+        plotted = True
+    if not plotted:
+        plt.close(fig)
         return None
-    steps = [int(r["steps"]) for r in rows]
-    mean = [float(r["return_mean"]) for r in rows]
-    low = [float(r["return_min"]) for r in rows]
-    high = [float(r["return_max"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(steps, mean, label="episode return (mean)")
-    ax.fill_between(steps, low, high, alpha=0.2, label="min-max")
     ax.set_xlabel("env steps")
     ax.set_ylabel("episode return")
-    ax.set_title(title or Path(metrics_path).parent.name)
+    ax.set_title(title or ", ".join(runs))
     ax.legend()
     fig.tight_layout()
     fig.savefig(png_path, dpi=100)

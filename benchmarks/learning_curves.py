@@ -1,0 +1,19 @@
+"""Plot several training runs' returns in one figure.
+
+    python benchmarks/learning_curves.py runs/curve-mat runs/curve-mappo \
+        --out docs/cheetah-6x1_mat_vs_mappo.png --title "cheetah-6x1, 2e6 steps"
+"""
+
+import argparse
+from pathlib import Path
+
+from mat_sdk.run_log import METRICS_NAME, plot_runs
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="run directories (with metrics.csv)")
+    parser.add_argument("--out", type=Path, required=True, help="PNG to write")
+    parser.add_argument("--title")
+    args = parser.parse_args()
+    runs = {run.name: run / METRICS_NAME for run in args.runs}
+    print(plot_runs(runs, args.out, args.title))
