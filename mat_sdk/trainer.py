@@ -454,8 +454,8 @@ class Trainer:
         allowed = {"device", "workers", "checkpoint_every"}
         if set(overrides) - allowed:
             raise ValueError(
-                f"Trainer.load can override only {sorted(allowed)}; "
-                "use Trainer.from_pretrained to change the task"
+                f"Trainer.load can override only {sorted(allowed)}; the task, model and "
+                "hyperparameters come from the checkpoint"
             )
         train.update(overrides)
         algo = train.pop("algo")
@@ -464,12 +464,11 @@ class Trainer:
         trainer.restore(payload)
         return trainer
 
-    def restore(self, payload: dict[str, Any], training_state: bool = True) -> None:
+    def restore(self, payload: dict[str, Any]) -> None:
+        """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""
         self.policy.load_state_dict(payload["model"])
         self.obs_norm.load_state_dict(payload["obs_norm"])
         self.value_norm.load_state_dict(payload["value_norm"])
-        if not training_state:
-            return
         self.optimizer.load_state_dict(payload["optimizer"])
         self.progress = dict(payload["progress"])
         if payload["rng"].get("device", "cpu") == self.device.type:
