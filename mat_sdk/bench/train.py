@@ -130,6 +130,7 @@ def main(
                     "env-steps/s": f"{4000 / (rollout_s + update_s):,.0f}",
                 }
             )
-        print_table(rows, f"Training throughput, paper recipe, {env_id}, device {trainer.device}")
+        title = f"Training throughput, paper recipe, {env_id}, {trainer.device}, {torch.get_num_threads()} thread(s)"
+        print_table(rows, title)
     finally:
         trainer.close()
