@@ -130,7 +130,10 @@ def main(
                     "env-steps/s": f"{4000 / (rollout_s + update_s):,.0f}",
                 }
             )
-        title = f"Training throughput, paper recipe, {env_id}, {trainer.device}, {torch.get_num_threads()} thread(s)"
+        threads = torch.get_num_threads()
+        title = (
+            f"Training throughput, paper recipe, {env_id}, {trainer.device}, {threads} thread(s)"
+        )
         print_table(rows, title)
     finally:
         trainer.close()
