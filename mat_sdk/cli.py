@@ -310,9 +310,16 @@ def bench_decode(seconds: float) -> None:
 @click.option(
     "--workers", default=0, show_default=True, help="Env worker processes for the rollout."
 )
+@click.option("--threads", type=int, help="torch intra-op threads [torch's default].")
 @user_errors
-def bench_train(env_id: str, device: str, compiled: bool, rounds: int, workers: int) -> None:
+def bench_train(
+    env_id: str, device: str, compiled: bool, rounds: int, workers: int, threads: int | None
+) -> None:
     """Training throughput (paper recipe): rollout vs update, ours vs an official-style update."""
+    import torch
+
     from mat_sdk.bench.train import main as run
 
+    if threads:
+        torch.set_num_threads(threads)
     run(env_id, device=device, compiled=compiled, rounds=rounds, workers=workers)
