@@ -61,6 +61,9 @@ class TrainConfig:
     checkpoint_every: int = 10  # updates
     device: str = "cpu"
     compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
+    # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
+    # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
+    torch_threads: int = 1
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -123,10 +126,8 @@ class Trainer:
                 "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
             )
         torch.manual_seed(cfg.seed)
-        if (
-            cfg.workers > 0
-        ):  # env processes need the cores; spinning torch threads would starve them
-            torch.set_num_threads(1)
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
         self.env = envs.make_vec(
             cfg.env,
             cfg.num_envs,
