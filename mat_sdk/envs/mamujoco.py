@@ -7,6 +7,8 @@ numbers (the paper's MAT reaches about 9,000 there). Defaults follow the paper's
 
 from __future__ import annotations
 
+import contextlib
+import io
 import re
 from collections.abc import Mapping
 
@@ -31,7 +33,9 @@ class MaMuJoCoTeam:
         agent_obsk: int = 0,
         episode_limit: int | None = None,
     ):
-        from gymnasium_robotics import mamujoco_v1
+        # Its import prints a notice about Adroit envs, which this SDK never uses.
+        with contextlib.redirect_stderr(io.StringIO()):
+            from gymnasium_robotics import mamujoco_v1
 
         match = _ID.match(env_id)
         if not match:
