@@ -183,19 +183,21 @@ def _export(module, args, dynamic_shapes, inputs, outputs, path: Path) -> dict:
     registry_log = logging.getLogger("torch.onnx._internal.exporter._registration")
     level = registry_log.level
     registry_log.setLevel(logging.ERROR)  # "torchvision is not installed" is noise for us
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")
-        program = torch.onnx.export(
-            module,
-            args,
-            dynamo=True,
-            opset_version=OPSET,
-            dynamic_shapes=dynamic_shapes,
-            input_names=inputs,
-            output_names=outputs,
-            verbose=False,
-        )
-    registry_log.setLevel(level)
+    try:
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(
+                module,
+                args,
+                dynamo=True,
+                opset_version=OPSET,
+                dynamic_shapes=dynamic_shapes,
+                input_names=inputs,
+                output_names=outputs,
+                verbose=False,
+            )
+    finally:
+        registry_log.setLevel(level)
     program.save(str(path))
     return {"inputs": inputs, "outputs": outputs}
 
