@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import onnx
 import torch
+from mat_export.decode_graph import OPSET as DECODE_OPSET
 from mat_export.decode_graph import build_decode
 from mat_export.graphs import (
     DecentralisedStepGraph,
@@ -65,14 +66,18 @@ def export(
         graphs = _export_graphs(policy, normalizer, value_scale, staging)
         manifest = _manifest(payload, cfg, graphs, checkpoint_path)
         decode = build_decode(
-            onnx.load(str(staging / "encoder.onnx")),
-            onnx.load(str(staging / "decoder_step.onnx")),
-            manifest,
+            policy,
+            normalizer.mean.numpy(),
+            normalizer.scale.numpy(),
+            normalizer.clip,
+            float(value_scale.mean),
+            float(value_scale.std),
         )
         (staging / "decode.onnx").write_bytes(decode.SerializeToString())
         graphs["decode.onnx"] = {
             "inputs": [i.name for i in decode.graph.input],
             "outputs": [o.name for o in decode.graph.output],
+            "opset": DECODE_OPSET,
         }
         manifest["graphs"] = dict(graphs)
         parity = measure_parity(policy, normalizer, value_scale, staging, counts)
@@ -199,7 +204,7 @@ def _export(module, args, dynamic_shapes, inputs, outputs, path: Path) -> dict:
     finally:
         registry_log.setLevel(level)
     program.save(str(path))
-    return {"inputs": inputs, "outputs": outputs}
+    return {"inputs": inputs, "outputs": outputs, "opset": OPSET}
 
 
 def _finish_graph(path: Path, manifest: dict) -> None:
