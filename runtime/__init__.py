@@ -1,4 +1,13 @@
-"""Torch-free runtime for exported MAT bundles (numpy + onnxruntime only).
+"""Torch-free runtime for exported MAT bundles: numpy + onnxruntime only.
 
-Not implemented yet: `mat export` bundles run today with onnxruntime directly (see README).
+    from mat_runtime import Policy
+    policy = Policy.load("cheetah_onnx")
+    actions = policy.act(obs)  # obs [n, obs_dim] -> actions [n, action_size]
+
+See `mat_runtime.policy` for the input rules and thread-safety.
 """
+
+from mat_runtime.errors import BundleError, InputError, MatRuntimeError
+from mat_runtime.policy import Policy
+
+__all__ = ["BundleError", "InputError", "MatRuntimeError", "Policy"]

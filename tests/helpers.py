@@ -3,6 +3,10 @@
 import torch
 from torch import nn
 
+from mat_sdk.trainer import Trainer
+
+TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
+
 
 def trained_like(policy: nn.Module) -> nn.Module:
     """Replace the near-zero official init (gain 0.01) with unit-gain weights, as after training,
@@ -26,3 +30,11 @@ GAME = {
     "clip": 0.2,
     "entropy_coef": 0.01,
 }
+
+
+def make_checkpoint(path, env_id="hopper-2x2", algo="mat", **options):
+    """A briefly trained checkpoint (real normaliser statistics) with trained-scale weights."""
+    with Trainer(env_id, algo, **TINY, **options) as trainer:
+        trainer.learn(20, progress_bar=False)
+        trained_like(trainer.policy)  # unit-gain weights: parity must hold on a real-scale net
+        return trainer.save(path)

@@ -8,22 +8,12 @@ import onnx
 import pytest
 import torch
 from click.testing import CliRunner
-from helpers import trained_like
+from helpers import make_checkpoint
 from mat_export import ExportError, export
 from mat_export import exporter as exporter_module
 
 from mat_sdk import checkpoint
 from mat_sdk.cli import main
-from mat_sdk.trainer import Trainer
-
-TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
-
-
-def make_checkpoint(path, env_id="hopper-2x2", algo="mat", **options):
-    with Trainer(env_id, algo, **TINY, **options) as trainer:
-        trainer.learn(20, progress_bar=False)
-        trained_like(trainer.policy)  # unit-gain weights: parity must hold on a real-scale net
-        return trainer.save(path)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,61 @@
+"""Read and verify a `mat export` bundle: manifest first, then every graph's sha256."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mat_runtime.errors import BundleError
+
+FORMAT = "mat-onnx"
+SUPPORTED_VERSIONS = (1,)
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A verified bundle: its manifest and each graph's bytes (loaded exactly as hashed)."""
+
+    path: Path
+    manifest: dict[str, Any]
+    graphs: dict[str, bytes]
+
+
+def read_bundle(path: str | Path, graph_names: tuple[str, ...]) -> Bundle:
+    path = Path(path)
+    manifest_path = path / "manifest.json"
+    if not path.is_dir():
+        raise BundleError(f"{path}: no such bundle directory; create one with `mat export`")
+    if not manifest_path.is_file():
+        raise BundleError(f"{path}: no manifest.json; is this a `mat export` bundle?")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise BundleError(
+            f"{manifest_path}: not valid JSON ({err}); re-export the bundle"
+        ) from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise BundleError(f"{manifest_path}: format is not {FORMAT!r}; is this a MAT bundle?")
+    version = manifest.get("version")
+    if version not in SUPPORTED_VERSIONS:
+        raise BundleError(
+            f"{manifest_path}: bundle format version {version!r}, this runtime reads "
+            f"{', '.join(map(str, SUPPORTED_VERSIONS))}; upgrade mat-sdk or re-export with this one"
+        )
+    graphs = {}
+    for name in graph_names:
+        entry = manifest.get("graphs", {}).get(name)
+        if entry is None:
+            raise BundleError(f"{manifest_path}: lists no {name}; re-export the bundle")
+        file = path / name
+        if not file.is_file():
+            raise BundleError(f"{file}: missing; the bundle is incomplete, re-export it")
+        data = file.read_bytes()
+        if hashlib.sha256(data).hexdigest() != entry.get("sha256"):
+            raise BundleError(
+                f"{file}: sha256 does not match the manifest (corrupt or modified); re-export it"
+            )
+        graphs[name] = data
+    return Bundle(path, manifest, graphs)

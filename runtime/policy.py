@@ -1,0 +1,214 @@
+"""`Policy`: an exported MAT bundle acting through ONNX Runtime, with numpy only (no torch).
+
+    from mat_runtime import Policy
+    policy = Policy.load("cheetah_onnx")                  # checks manifest + sha256 of graphs
+    actions = policy.act(obs)                             # obs [n, obs_dim] or [B, n, obs_dim]
+    actions, extra = policy.act(obs, deterministic=False, seed=0, return_values=True)
+
+One control step is one ONNX Runtime call of `decode.onnx` (encoder + the agents' decoder
+steps + action selection); sampling noise is drawn here and passed in, zero noise gives the
+deterministic action. Everything that can be done once happens in `load`.
+
+Input rules (each violation raises `InputError`, and the policy keeps serving):
+- `obs` is `[n, obs_dim]` or `[B, n, obs_dim]`, with any n >= 1 the bundle allows (MAPPO's
+  critic fixes n). Any real dtype is accepted and converted to float32 (float64 is the
+  common case); values must be finite after that conversion.
+- `available` (discrete policies only) has the shape of the logits, `[.., n, actions]`, truthy
+  where an action may be chosen; every agent needs at least one.
+- Sampling (`deterministic=False`) needs `seed=`: an int, or a `numpy.random.Generator` you
+  keep between calls. There is no hidden global RNG, so runs are reproducible.
+
+Thread-safety: `act` may be called from several threads on one `Policy` at once (ONNX
+Runtime sessions are thread-safe and the call shares no mutable state). A
+`numpy.random.Generator` passed as `seed` is not thread-safe: give each thread its own.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+from mat_runtime.bundle import read_bundle
+from mat_runtime.errors import InputError
+
+GRAPH = "decode.onnx"
+_ZERO_NOISE_CACHE = 32  # distinct (B, n) shapes whose zero-noise buffers are kept
+
+
+class Policy:
+    """A loaded bundle. Create with `Policy.load`; act with `act`."""
+
+    def __init__(self, path: Path, manifest: dict[str, Any], session: ort.InferenceSession):
+        self.path, self.manifest, self._session = path, manifest, session
+        action = manifest["action"]
+        self.algo: str = manifest["algo"]
+        self.env_id: str | None = manifest.get("env_id")
+        self.obs_dim: int = int(manifest["obs_dim"])
+        self.action_type: str = action["type"]
+        self.action_size: int = int(action["size"])
+        self.action_low, self.action_high = float(action["low"]), float(action["high"])
+        self.min_agents: int = int(manifest["agents"]["min"])
+        self.max_agents: int | None = manifest["agents"]["max"]
+        self.discrete = self.action_type == "discrete"
+        head = ["logits"] if self.discrete else ["mean", "std"]
+        self._outputs = ["actions", *head, "values"]
+        self._zero_noise: dict[tuple[int, int], np.ndarray] = {}
+
+    @classmethod
+    def load(cls, path: str | Path, threads: int = 1, providers: list[str] | None = None) -> Policy:
+        """Verify the bundle (format, version, sha256 of the graph) and build the session.
+
+        `threads`: ONNX Runtime intra-op threads; 1 is fastest for MAT's small kernels and
+        keeps the controller's other cores free. `providers`: ONNX Runtime execution providers
+        (default CPU).
+        """
+        if not isinstance(threads, int) or threads < 1:
+            raise InputError(f"threads must be an int >= 1, got {threads!r}")
+        available = ort.get_available_providers()
+        providers = list(providers or ["CPUExecutionProvider"])
+        unknown = [p for p in providers if p not in available]
+        if unknown:
+            raise InputError(f"providers {unknown} are not available here; available: {available}")
+        bundle = read_bundle(path, (GRAPH,))
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.log_severity_level = 3  # warnings about unused initializers are not the user's
+        session = ort.InferenceSession(bundle.graphs[GRAPH], options, providers=providers)
+        return cls(bundle.path, bundle.manifest, session)
+
+    def __repr__(self) -> str:
+        agents = f"{self.min_agents}..{self.max_agents or 'any'}"
+        return (
+            f"Policy({str(self.path)!r}, algo={self.algo}, env={self.env_id}, "
+            f"obs_dim={self.obs_dim}, {self.action_type} actions x{self.action_size}, "
+            f"agents {agents})"
+        )
+
+    def act(
+        self,
+        obs,
+        available=None,
+        *,
+        deterministic: bool = True,
+        seed: int | np.random.Generator | None = None,
+        return_values: bool = False,
+        clip: bool = True,
+    ):
+        """Actions for every agent: `[.., n, action_size]` floats (continuous, clipped to the
+        action bounds) or `[.., n]` int64 choices (discrete); `..` is B when obs has a batch.
+
+        `clip=False` returns continuous samples as drawn, i.e. what each next agent was
+        conditioned on (what a rollout collector must store); the env clips them anyway.
+
+        With `return_values=True` also returns a dict: `values` `[.., n]` (in return units)
+        and the distribution, `mean`/`std` or masked `logits` `[.., n, action_size]`.
+        """
+        x = self._check_obs(obs)
+        batch, n, _ = x.shape
+        feed = {"obs": x, "noise": self._noise(batch, n, deterministic, seed)}
+        if self.discrete:
+            feed["available"] = self._check_available(available, batch, n)
+        elif available is not None:
+            raise InputError("`available` is for discrete policies; this one is continuous")
+        result = dict(zip(self._outputs, self._session.run(self._outputs, feed), strict=True))
+        if self.discrete:
+            actions = result["actions"][..., 0].astype(np.int64)
+        elif clip:
+            actions = np.clip(result["actions"], self.action_low, self.action_high)
+        else:
+            actions = result["actions"]
+        unbatch = (lambda a: a[0]) if np.ndim(obs) == 2 else (lambda a: a)
+        if not return_values:
+            return unbatch(actions)
+        extra = {name: unbatch(result[name]) for name in self._outputs[1:-1]}
+        extra["values"] = unbatch(result["values"][..., 0])
+        return unbatch(actions), extra
+
+    # ---- input checks: each names the problem and what to do
+    def _check_obs(self, obs) -> np.ndarray:
+        try:
+            array = np.asarray(obs)
+        except ValueError as err:
+            raise InputError(f"obs is not an array ({err})") from None
+        if array.dtype.kind not in "fiub":
+            raise InputError(f"obs must be numbers, got dtype {array.dtype}")
+        if array.ndim not in (2, 3):
+            raise InputError(
+                f"obs must be [n, obs_dim] or [B, n, obs_dim], got shape {array.shape}"
+            )
+        if array.shape[-1] != self.obs_dim:
+            raise InputError(
+                f"obs has {array.shape[-1]} features per agent; this policy takes {self.obs_dim} "
+                f"(trained on {self.env_id}); is it the right env and one-hot id setting?"
+            )
+        n = array.shape[-2]
+        if n == 0 or (array.ndim == 3 and array.shape[0] == 0):
+            raise InputError(f"obs has no agents or no batch rows (shape {array.shape})")
+        if n < self.min_agents or (self.max_agents is not None and n > self.max_agents):
+            allowed = (
+                f"exactly {self.max_agents}"
+                if self.min_agents == self.max_agents
+                else f"{self.min_agents}..{self.max_agents or 'any'}"
+            )
+            raise InputError(f"got {n} agents; this {self.algo} bundle serves {allowed}")
+        with np.errstate(over="ignore"):  # out-of-range values become inf, refused below
+            x = np.ascontiguousarray(array if array.ndim == 3 else array[None], dtype=np.float32)
+        finite = np.isfinite(x).all(axis=-1)
+        if not finite.all():
+            row, agent = np.argwhere(~finite)[0]
+            where = f"agent {agent}" + (f" of batch row {row}" if array.ndim == 3 else "")
+            raise InputError(f"obs of {where} contains NaN or inf (as float32); check the sensor")
+        return x
+
+    def _check_available(self, available, batch: int, n: int) -> np.ndarray:
+        shape = (batch, n, self.action_size)
+        if available is None:
+            return np.ones(shape, np.float32)
+        mask = np.asarray(available)
+        if mask.shape not in (shape, shape[1:]) or (mask.shape == shape[1:] and batch != 1):
+            raise InputError(
+                f"available must have shape {shape[1:] if batch == 1 else shape}, got {mask.shape}"
+            )
+        mask = (mask != 0).reshape(shape)
+        blocked = ~mask.any(axis=-1)
+        if blocked.any():
+            agent = int(np.argwhere(blocked)[0][1])
+            raise InputError(f"agent {agent} has no available action; at least one must be allowed")
+        return mask.astype(np.float32)
+
+    def _noise(self, batch: int, n: int, deterministic: bool, seed) -> np.ndarray:
+        if deterministic:
+            if seed is not None:
+                raise InputError(
+                    "seed given for a deterministic call; pass deterministic=False to sample"
+                )
+            zeros = self._zero_noise.get((batch, n))
+            if zeros is None:
+                if len(self._zero_noise) >= _ZERO_NOISE_CACHE:
+                    self._zero_noise.clear()
+                zeros = np.zeros((batch, n, self.action_size), np.float32)
+                zeros.flags.writeable = False
+                self._zero_noise[(batch, n)] = zeros
+            return zeros
+        if seed is None:
+            raise InputError(
+                "sampling needs seed=: an int, or a numpy.random.Generator kept between calls"
+            )
+        if isinstance(seed, np.random.Generator):
+            rng = seed
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            rng = np.random.default_rng(int(seed))
+        else:
+            raise InputError(
+                f"seed must be an int or numpy.random.Generator, got {type(seed).__name__}"
+            )
+        shape = (batch, n, self.action_size)
+        if not self.discrete:
+            return rng.standard_normal(shape, dtype=np.float32)
+        uniform = rng.random(shape, dtype=np.float32)
+        return -np.log(-np.log(np.maximum(uniform, np.finfo(np.float32).tiny)))  # Gumbel

@@ -1,0 +1,270 @@
+"""mat_runtime: parity with the torch policy, sampling, loud errors, threads, no torch."""
+
+import json
+import subprocess
+import sys
+import threading
+
+import mat_runtime
+import numpy as np
+import pytest
+import torch
+from helpers import make_checkpoint
+from mat_export import export
+from mat_runtime import BundleError, InputError, Policy
+
+from mat_sdk.evaluation import LoadedPolicy
+
+COUNTS = (1, 2, 6, 17, 64)
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory):
+    """(checkpoint, bundle) per policy kind; exported once for the module."""
+    root = tmp_path_factory.mktemp("runtime")
+    recipes = {
+        "mat": ("hopper-2x2", "mat", {"n_block": 2, "n_head": 2}),
+        "mat-discrete": ("coordination-3", "mat", {}),
+        "mat-dec": ("hopper-2x2", "mat-dec", {}),
+        "mappo": ("coordination-3", "mappo", {}),
+    }
+    made = {}
+    for name, (env_id, algo, options) in recipes.items():
+        ckpt = make_checkpoint(root / f"{name}.pt", env_id, algo, **options)
+        export(ckpt, root / name, agent_counts=(1, 3))
+        made[name] = (ckpt, root / name)
+    return made
+
+
+def _obs(policy, n, batch=None, seed=0):
+    shape = (n, policy.obs_dim) if batch is None else (batch, n, policy.obs_dim)
+    return 2.0 * np.random.default_rng(seed).standard_normal(shape)  # float64, as users pass
+
+
+def _torch_actions(loaded: LoadedPolicy, obs: np.ndarray) -> np.ndarray:
+    return loaded.act(obs[None] if obs.ndim == 2 else obs)
+
+
+@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-dec", "mappo"])
+def test_deterministic_actions_equal_the_torch_policy(bundles, name):
+    ckpt, bundle = bundles[name]
+    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    counts = (3,) if name == "mappo" else COUNTS
+    for n in counts:
+        obs = _obs(policy, n)
+        got, expected = policy.act(obs), _torch_actions(loaded, obs)[0]
+        if policy.discrete:
+            assert got.shape == (n,) and got.dtype == np.int64
+            np.testing.assert_array_equal(got, expected[:, 0].astype(np.int64))
+        else:
+            assert got.shape == (n, policy.action_size) and got.dtype == np.float32
+            assert np.abs(got - np.clip(expected, -1, 1)).max() <= 1e-5, n
+
+
+def test_batched_values_and_distribution_match_torch(bundles):
+    ckpt, bundle = bundles["mat"]
+    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    obs = _obs(policy, 6, batch=4)
+    actions, extra = policy.act(obs, return_values=True)
+    with torch.no_grad():
+        x = torch.from_numpy(loaded.obs_norm.normalize(obs))
+        means, values = loaded.policy.action_params(x, torch.from_numpy(extra["mean"]))
+    assert actions.shape == (4, 6, policy.action_size) and extra["values"].shape == (4, 6)
+    assert np.abs(extra["mean"] - means.numpy()).max() <= 1e-5
+    # values come out in return units: the checkpoint's ValueNorm is folded in
+    payload = torch.load(ckpt, weights_only=True)
+    scale = payload["value_norm"]
+    mean = (scale["running_mean"] / scale["debiasing_term"].clamp_min(1e-5)).item()
+    mean_sq = (scale["running_mean_sq"] / scale["debiasing_term"].clamp_min(1e-5)).item()
+    expected = values.numpy()[..., 0] * np.sqrt(max(mean_sq - mean**2, 1e-2)) + mean
+    assert np.abs(extra["values"] - expected).max() <= 1e-4
+
+
+def test_discrete_sampling_follows_the_torch_joint_distribution(bundles):
+    """20,000 sampled joint choices vs the exact joint probabilities from torch's log-probs."""
+    ckpt, bundle = bundles["mat-discrete"]
+    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    samples = 20_000
+    obs = np.repeat(_obs(policy, 3)[None], samples, axis=0)
+    available = np.ones((samples, 3, 3), bool)
+    available[:, 2, 0] = False  # the third agent may not pick option 0
+    choices = policy.act(obs, available, deterministic=False, seed=7)
+    assert (choices[:, 2] != 0).all()
+    joints = np.array(np.meshgrid(*[range(3)] * 3, indexing="ij")).reshape(3, -1).T  # all 27
+    with torch.no_grad():
+        x = torch.from_numpy(loaded.obs_norm.normalize(obs[: len(joints)]))
+        log_prob, _, _ = loaded.policy.evaluate(
+            x,
+            torch.from_numpy(joints[:, :, None]).float(),
+            torch.from_numpy(available[: len(joints)]).float(),
+        )
+    exact = log_prob.sum((1, 2)).exp().numpy()
+    codes = choices @ np.array([9, 3, 1])
+    empirical = np.bincount(codes, minlength=27) / samples
+    assert abs(exact.sum() - 1) < 1e-4
+    assert 0.5 * np.abs(empirical - exact).sum() < 0.02  # total variation distance
+    assert not np.allclose(exact, exact[0])  # a distribution worth testing: not uniform
+
+
+def test_continuous_sampling_follows_the_torch_distribution(bundles):
+    """Runtime samples, scored by torch teacher-forced on those same samples: z ~ N(0, 1)."""
+    ckpt, bundle = bundles["mat"]
+    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    obs = np.repeat(_obs(policy, 6)[None], 5000, axis=0)
+    rng = np.random.default_rng(3)
+    actions = policy.act(obs, deterministic=False, seed=rng, clip=False)  # as conditioned on
+    assert np.abs(actions).max() > 1.0  # so clip=False really is unclipped
+    with torch.no_grad():
+        x = torch.from_numpy(loaded.obs_norm.normalize(obs))
+        means, _ = loaded.policy.action_params(x, torch.from_numpy(actions))
+        std = loaded.policy.std().numpy()
+    z = (actions - means.numpy()) / std
+    assert abs(z.mean()) < 0.05 and abs(z.std() - 1) < 0.05
+    first_agent_spread = actions[:, 0].std() / std.mean()
+    assert 0.9 < first_agent_spread < 1.1  # agent 0 has no predecessor: pure N(mean, std)
+
+
+def test_seeds_make_sampling_reproducible(bundles):
+    policy = Policy.load(bundles["mat"][1])
+    obs = _obs(policy, 6)
+    first = policy.act(obs, deterministic=False, seed=1)
+    np.testing.assert_array_equal(first, policy.act(obs, deterministic=False, seed=1))
+    assert not np.array_equal(first, policy.act(obs, deterministic=False, seed=2))
+    rng = np.random.default_rng(5)
+    a, b = (policy.act(obs, deterministic=False, seed=rng) for _ in range(2))
+    assert not np.array_equal(a, b)  # a Generator advances between calls
+    np.testing.assert_array_equal(policy.act(obs), policy.act(obs.astype(np.float32)))
+
+
+def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
+    policy = Policy.load(bundles["mat"][1])
+    discrete = Policy.load(bundles["mat-discrete"][1])
+    mappo = Policy.load(bundles["mappo"][1])
+    good = _obs(policy, 6)
+    expected = policy.act(good)
+    nan = good.copy()
+    nan[4, 2] = np.nan
+    bad_calls = [
+        (lambda: policy.act(good[:, :-1]), "features per agent"),
+        (lambda: policy.act(good[0]), "shape"),
+        (lambda: policy.act(good[None, None]), "shape"),
+        (lambda: policy.act(np.zeros((0, policy.obs_dim))), "no agents"),
+        (lambda: policy.act(nan), "agent 4"),
+        (lambda: policy.act(np.full_like(good, 1e39)), "inf"),
+        (lambda: policy.act(good.astype(str)), "numbers"),
+        (lambda: policy.act(good, deterministic=False), "seed"),
+        (lambda: policy.act(good, seed=3), "deterministic=False"),
+        (lambda: policy.act(good, deterministic=False, seed="x"), "seed must be"),
+        (lambda: policy.act(good, np.ones((6, 1))), "discrete"),
+        (lambda: discrete.act(_obs(discrete, 3), np.zeros((3, 3))), "no available action"),
+        (lambda: discrete.act(_obs(discrete, 3), np.ones((3, 2))), "available must have shape"),
+        (lambda: mappo.act(_obs(mappo, 2)), "exactly 3"),
+    ]
+    for call, message in bad_calls:
+        with pytest.raises(InputError, match=message):
+            call()
+        np.testing.assert_array_equal(policy.act(good), expected)  # still serving
+    assert issubclass(InputError, ValueError)
+
+
+def test_broken_bundles_are_refused_before_loading(bundles, tmp_path):
+    import shutil
+
+    source = bundles["mat"][1]
+    cases = {
+        "missing": lambda d: shutil.rmtree(d),
+        "no manifest": lambda d: (d / "manifest.json").unlink(),
+        "missing graph": lambda d: (d / "decode.onnx").unlink(),
+        "modified graph": lambda d: (d / "decode.onnx").write_bytes(
+            (d / "decode.onnx").read_bytes()[:-1] + b"\0"
+        ),
+        "future version": lambda d: _edit_manifest(d, version=99),
+        "not a bundle": lambda d: _edit_manifest(d, format="something-else"),
+        "bad json": lambda d: (d / "manifest.json").write_text("{"),
+    }
+    messages = {
+        "missing": "no such bundle",
+        "no manifest": "no manifest.json",
+        "missing graph": "missing",
+        "modified graph": "sha256",
+        "future version": "version 99",
+        "not a bundle": "format",
+        "bad json": "JSON",
+    }
+    for case, damage in cases.items():
+        target = tmp_path / case.replace(" ", "_")
+        shutil.copytree(source, target)
+        damage(target)
+        with pytest.raises(BundleError, match=messages[case]):
+            Policy.load(target)
+    assert issubclass(BundleError, OSError)
+    with pytest.raises(InputError, match="not available"):
+        Policy.load(source, providers=["NoSuchExecutionProvider"])
+
+
+def _edit_manifest(directory, **fields):
+    manifest = json.loads((directory / "manifest.json").read_text())
+    manifest.update(fields)
+    (directory / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_one_policy_serves_several_threads(bundles):
+    policy = Policy.load(bundles["mat"][1])
+    inputs = [_obs(policy, n, seed=n) for n in (1, 2, 6, 17) * 3]
+    expected = [policy.act(obs) for obs in inputs]
+    sampled = [policy.act(obs, deterministic=False, seed=i) for i, obs in enumerate(inputs)]
+    failures = []
+
+    def worker(offset):
+        for round_ in range(30):
+            i = (offset + round_) % len(inputs)
+            if not np.array_equal(policy.act(inputs[i]), expected[i]):
+                failures.append(("deterministic", i))
+            if not np.array_equal(policy.act(inputs[i], deterministic=False, seed=i), sampled[i]):
+                failures.append(("sampled", i))
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not failures
+
+
+def test_runtime_works_where_torch_cannot_be_imported(bundles):
+    bundle = bundles["mat"][1]
+    script = f"""
+import sys
+sys.modules["torch"] = None  # any `import torch` now raises ImportError
+import numpy as np
+from mat_runtime import Policy
+policy = Policy.load({str(bundle)!r})
+actions = policy.act(np.zeros((5, policy.obs_dim)))
+assert actions.shape == (5, policy.action_size), actions.shape
+banned = ("torch", "mat_sdk", "mat_export")
+loaded = sorted(m for m, mod in sys.modules.items() if mod and m.split(".")[0] in banned)
+assert not loaded, loaded
+print("ok")
+"""
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr
+
+
+def test_runtime_imports_only_numpy_and_onnxruntime():
+    import ast
+    from pathlib import Path
+
+    allowed = {"numpy", "onnxruntime", "mat_runtime", "__future__"}
+    stdlib = set(sys.stdlib_module_names)
+    for path in Path(mat_runtime.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            for name in names:
+                top = name.split(".")[0]
+                assert top in allowed or top in stdlib, f"{path.name} imports {name}"
