@@ -212,21 +212,16 @@ def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool) -> dict[str, str]:
     width_1d = g.const([width], "width", np.int64)
     first = g.op("Expand", g.const(start[None], "start"), g.op("Concat", batch, width_1d, axis=0))
     zeros = numpy_helper.from_array(np.zeros(1, np.float32))
-    empty_rows = g.op(
+    empty = g.op(
         "ConstantOfShape",
-        g.op("Concat", batch, g.const([0, width], "rows", np.int64), axis=0),
-        value=zeros,
-    )
-    empty_cols = g.op(
-        "ConstantOfShape",
-        g.op("Concat", batch, g.const([width, 0], "cols", np.int64), axis=0),
+        g.op("Concat", batch, g.const([1, 0, width], "cache", np.int64), axis=0),
         value=zeros,
     )
     caches = [
         (f"{b}.{attn}", kind)
         for b in range(cfg.n_block)
         for attn in ("attn1", "attn2")
-        for kind in ("rows", "cols")
+        for kind in ("key", "value")
     ]
 
     # ---- the loop body: one agent, 2-D [B, C] activations
@@ -261,17 +256,17 @@ def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool) -> dict[str, str]:
         chosen = body.op("Add", params, mine["shift"])
         embedded = body.dense(chosen, embed, w["decoder.action_encoder.0.bias"], True, "next")
     body.op("Identity", "cond", outputs=["cond_out"])
-    shapes = {"rows": ["batch", "past", width], "cols": ["batch", width, "past"]}
+    cache_shape = ["batch", 1, "past", width]
     body_inputs = [
         helper.make_tensor_value_info("i", INT64, []),
         helper.make_tensor_value_info("cond", TensorProto.BOOL, []),
         _value("embedded", ["batch", width]),
-        *(_value(f"past.{name}.{kind}", shapes[kind]) for name, kind in caches),
+        *(_value(f"past.{name}.{kind}", cache_shape) for name, kind in caches),
     ]
     body_outputs = [
         helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
         _value(embedded, ["batch", width]),
-        *(_value(p, shapes[kind]) for p, (_, kind) in zip(present, caches, strict=True)),
+        *(_value(p, cache_shape) for p in present),
         helper.make_tensor_value_info(
             chosen, INT64 if discrete else FLOAT, ["batch"] if discrete else ["batch", act]
         ),
@@ -280,7 +275,7 @@ def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool) -> dict[str, str]:
     loop_body = helper.make_graph(body.nodes, "agent_step", body_inputs, body_outputs)
     g.initializers += body.initializers  # outer scope: the body reads them from the main graph
     agents = g.op("Squeeze", g.op("Shape", rep, start=1, end=2))
-    carried = [first, *(empty_rows if kind == "rows" else empty_cols for _, kind in caches)]
+    carried = [first, *(empty for _ in caches)]
     *_, chosen, params = g.op(
         "Loop", agents, g.const(True, "true", np.bool_), *carried,
         outputs=len(carried) + 2, body=loop_body,
@@ -319,26 +314,17 @@ def _stream_output(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarr
 
 
 def _stream_attention(g: GraphBuilder, queries, stream, attn, past, heads, present):
-    """Attention of one agent's stream queries [B, H*C] over the cached stream plus its own
-    entry `stream` [B, C], kept as rows [B, L, C] and as columns [B, C, L]; appends both."""
+    """One agent's stream queries [B, H*C] attend over the cached stream plus its own entry
+    `stream` [B, C]: ONNX `Attention` with H query heads sharing one key/value head of width C
+    (the stream serves as both; scale already folded into the queries). Appends the caches."""
     width = g.weights[f"{attn}.proj.bias"].shape[0]
-    rows = g.op(
-        "Concat",
-        f"{past}.rows",
-        g.op("Reshape", stream, g.const([0, 1, width], "row", np.int64)),
-        axis=1,
-    )
-    cols = g.op(
-        "Concat",
-        f"{past}.cols",
-        g.op("Reshape", stream, g.const([0, width, 1], "col", np.int64)),
-        axis=2,
-    )
-    present += [rows, cols]
-    queries = g.op("Reshape", queries, g.const([0, heads, width], "heads", np.int64))
-    weights = g.op("Softmax", g.op("MatMul", queries, cols), axis=-1)  # [B, H, L]
-    mixed = g.op(
-        "Reshape", g.op("MatMul", weights, rows), g.const([0, heads * width], "flat", np.int64)
-    )
+    queries = g.op("Reshape", queries, g.const([0, heads, 1, width], "heads", np.int64))
+    entry = g.op("Reshape", stream, g.const([0, 1, 1, width], "entry", np.int64))
+    mixed, *caches = g.op(
+        "Attention", queries, entry, entry, "", f"{past}.key", f"{past}.value",
+        outputs=3, scale=1.0,
+    )  # fmt: skip
+    present += caches
+    mixed = g.op("Reshape", mixed, g.const([0, heads * width], "flat", np.int64))
     weight, bias = _stream_output(g.weights, attn, heads)
     return g.dense(mixed, weight, bias, True, f"{attn}.out")

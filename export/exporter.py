@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import onnx
 import torch
+
 from mat_export.decode_graph import OPSET as DECODE_OPSET
 from mat_export.decode_graph import build_decode
 from mat_export.graphs import (
@@ -32,7 +33,6 @@ from mat_export.graphs import (
     ValueScale,
     cache_names,
 )
-
 from mat_sdk import checkpoint
 from mat_sdk.model import MAT, ModelConfig, build_policy
 from mat_sdk.normalization import ValueNorm

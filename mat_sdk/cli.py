@@ -290,14 +290,26 @@ def bench_envs(seconds: float) -> None:
     run(seconds=seconds)
 
 
-@bench.command("decode")
-@click.option("--seconds", default=1.0, show_default=True, help="Time per measured variant.")
+@bench.command("runtime")
+@click.option("--seconds", default=2.0, show_default=True, help="Time per table row.")
+@click.option(
+    "--agents", default="2,6,17,64,256", show_default=True, help="Comma-separated agent counts."
+)
 @user_errors
-def bench_decode(seconds: float) -> None:
-    """decode.onnx (one ORT call per control step) vs the step graph called per agent."""
-    from mat_export.bench import main as run
+def bench_runtime(seconds: float, agents: str) -> None:
+    """One control step: mat_runtime vs the official re-decode, torch cached, step graph.
 
-    run(seconds=seconds)
+    \b
+    Example:
+      mat bench runtime --agents 6,64 --seconds 1
+    """
+    from mat_sdk.bench.runtime import main as run
+
+    try:
+        counts = tuple(int(a) for a in agents.split(","))
+    except ValueError:
+        raise click.BadParameter(f"--agents takes integers like 2,6,64, got {agents!r}") from None
+    run(agent_counts=counts, seconds=seconds)
 
 
 @bench.command("train")

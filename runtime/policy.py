@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import onnxruntime as ort
+
 from mat_runtime.bundle import read_bundle
 from mat_runtime.errors import InputError
 

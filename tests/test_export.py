@@ -9,9 +9,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 from helpers import make_checkpoint
+
 from mat_export import ExportError, export
 from mat_export import exporter as exporter_module
-
 from mat_sdk import checkpoint
 from mat_sdk.cli import main
 

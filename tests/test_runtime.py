@@ -5,14 +5,14 @@ import subprocess
 import sys
 import threading
 
-import mat_runtime
 import numpy as np
 import pytest
 import torch
 from helpers import make_checkpoint
+
+import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy
-
 from mat_sdk.evaluation import LoadedPolicy
 
 COUNTS = (1, 2, 6, 17, 64)

@@ -1,0 +1,132 @@
+"""One control step, four ways, side by side (`mat bench runtime`; issue 6).
+
+(a) runtime: `mat_runtime.Policy.act` (one `decode.onnx` call, input checks included);
+(b) official: torch, re-running the whole decoder on the action sequence for every agent, as
+    the official code's `continuous_autoregreesive_act` does (O(n^2));
+(c) torch cached: our KV-cached `MAT.act`;
+(d) step graph: `encoder.onnx`, then `decoder_step.onnx` called from Python once per agent.
+B = 1 unless stated, one thread everywhere, deterministic actions, interleaved rounds.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from mat_export.exporter import decode_with_ort, export
+from mat_runtime import Policy
+from mat_sdk.bench import machine, print_table
+from mat_sdk.trainer import Trainer
+
+SIZES = {
+    "1 block, 1 head": {"n_block": 1, "n_head": 1},
+    "3 blocks, 4 heads": {"n_block": 3, "n_head": 4},
+}
+AGENTS = (2, 6, 17, 64, 256)
+
+
+def latencies(
+    variants: dict[str, Callable[[], object]], seconds: float, rounds: int = 5
+) -> dict[str, np.ndarray]:
+    """Seconds of every single call, variants interleaved round by round (>= 1 call each)."""
+    samples: dict[str, list[float]] = {name: [] for name in variants}
+    for fn in variants.values():
+        fn()  # warm-up
+    budget = seconds / rounds / len(variants)
+    for _ in range(rounds):
+        for name, fn in variants.items():
+            start = time.perf_counter()
+            while True:
+                begin = time.perf_counter()
+                fn()
+                samples[name].append(time.perf_counter() - begin)
+                if begin - start >= budget:
+                    break
+    return {name: np.asarray(times) for name, times in samples.items()}
+
+
+def _bundle(directory: Path, **model) -> tuple[Path, object]:
+    with Trainer("cheetah-6x1", "mat", num_envs=1, rollout_length=1, **model) as trainer:
+        path = trainer.save(directory / "model.pt")
+        policy = trainer.policy.eval()
+    export(path, directory / "bundle", agent_counts=(1, 2))
+    return directory / "bundle", policy
+
+
+def official_act(policy, obs: torch.Tensor) -> torch.Tensor:
+    """The official code's decode: the full decoder over all n positions, once per agent."""
+    with torch.no_grad():
+        rep, _ = policy.encoder(obs)
+        batch, n, _ = obs.shape
+        shifted = torch.zeros(batch, n, policy.cfg.action_dim)
+        actions = torch.zeros(batch, n, policy.cfg.action_dim)
+        for i in range(n):
+            actions[:, i] = policy.decoder(shifted, rep)[:, i]
+            if i + 1 < n:
+                shifted[:, i + 1] = actions[:, i]
+        return actions
+
+
+def _variants(bundle: Path, policy, obs: np.ndarray) -> dict[str, Callable[[], object]]:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    encoder = ort.InferenceSession(str(bundle / "encoder.onnx"), options)
+    step = ort.InferenceSession(str(bundle / "decoder_step.onnx"), options)
+    runtime = Policy.load(bundle, threads=1)
+    x = torch.from_numpy(obs)
+
+    def step_graph():
+        rep, _ = encoder.run(None, {"obs": obs})
+        return decode_with_ort(policy, step, rep, None)
+
+    return {
+        "runtime": lambda: runtime.act(obs),
+        "official": lambda: official_act(policy, x),
+        "torch cached": lambda: policy.act(x, deterministic=True),
+        "step graph": step_graph,
+    }
+
+
+def _us(seconds: float) -> str:
+    return f"{seconds * 1e6:,.0f}"
+
+
+def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
+    torch.set_num_threads(1)
+    rows, scaling = [], {}
+    for label, model in SIZES.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle, policy = _bundle(Path(tmp), **model)
+            cases = [(1, n) for n in agent_counts] + [(40, 6)]
+            for batch, n in cases:
+                obs = np.random.default_rng(0).standard_normal((batch, n, policy.cfg.obs_dim))
+                times = latencies(_variants(bundle, policy, obs.astype(np.float32)), seconds)
+                p50 = {name: float(np.median(t)) for name, t in times.items()}
+                if batch == 1:
+                    scaling[(label, n)] = p50["runtime"]
+                rows.append(
+                    {
+                        "model": label,
+                        "B": batch,
+                        "agents": n,
+                        "(a) runtime p50 / p99 (µs)": (
+                            f"{_us(p50['runtime'])} / {_us(np.percentile(times['runtime'], 99))}"
+                        ),
+                        "(b) official p50 (µs)": _us(p50["official"]),
+                        "(c) torch cached p50 (µs)": _us(p50["torch cached"]),
+                        "(d) step graph p50 (µs)": _us(p50["step graph"]),
+                        "(a) vs (b)": f"{p50['official'] / p50['runtime']:.1f}x",
+                        "(a) vs (d)": f"{p50['step graph'] / p50['runtime']:.1f}x",
+                    }
+                )
+    print_table(rows, f"One control step, one thread — {machine()}")
+    if 64 in agent_counts and 256 in agent_counts:
+        for label in SIZES:
+            ratio = scaling[(label, 256)] / scaling[(label, 64)]
+            print(f"{label}: runtime t(256) / t(64) = {ratio:.2f}")
