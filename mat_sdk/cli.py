@@ -50,6 +50,8 @@ def main() -> None:
       mat rollout cheetah-6x1           a random team, to see an env work
       mat train cheetah-6x1 --steps 200000 --out runs/cheetah
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero
+      mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
+      mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat bench envs                    env stepping speed
     """
 
@@ -239,6 +241,86 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> N
     )
     if video:
         click.echo(f"video: {video}")
+
+
+@main.command()
+@click.argument("checkpoint", type=click.Path())
+@click.argument("env_id", required=False)
+@click.option(
+    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="The change to adapt to."
+)
+@click.option("--steps", default=20_000, show_default=True, help="Fine-tuning env steps.")
+@click.option(
+    "--out", "out_dir", type=click.Path(file_okay=False), help="Run directory [runs/finetune-…]."
+)
+@click.option("--lr", type=float, help="Learning rate [the checkpoint's].")
+@click.option(
+    "--episodes", default=10, show_default=True, help="Evaluation episodes (before/after)."
+)
+@click.option("--keep-optimizer", is_flag=True, help="Keep the checkpoint's Adam moments.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted fine-tuning run in OUT.")
+@click.option(
+    "--set", "settings", multiple=True, metavar="KEY=VALUE", help="Any TrainConfig field."
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def finetune(
+    checkpoint,
+    env_id,
+    faults,
+    steps,
+    out_dir,
+    lr,
+    episodes,
+    keep_optimizer,
+    resume,
+    settings,
+    quiet,
+) -> None:
+    """Adapt a trained CHECKPOINT to a changed robot (ENV_ID, default: the same env).
+
+    \b
+    Evaluates the pre-trained policy on the changed robot first (zero-shot), then runs PPO
+    from its weights and normalisers, and evaluates again. OUT gets checkpoint.pt,
+    metrics.csv, the curve and finetune.json (both evaluations).
+    A removed agent ("remove") leaves its team-mates' one-hot ids as they were; swimmer-N
+    has no ids, so swimmer-6 -> swimmer-9 works. Changes that alter the observation or
+    action size are refused.
+
+    \b
+    Examples:
+      mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
+      mat finetune runs/swimmer6/checkpoint.pt swimmer-9 --steps 50000 --out runs/sw9
+    """
+    from pathlib import Path
+
+    import numpy as np
+
+    from mat_sdk.finetune import finetune as run
+
+    fault_map = parse_faults(faults)
+    label = "-".join(f"{k}_{v}" for k, v in fault_map.items()) or (env_id or "same")
+    out = Path(out_dir or f"runs/finetune-{label.replace(':', '_')}")
+    result = run(
+        checkpoint,
+        env=env_id,
+        faults=fault_map,
+        steps=steps,
+        out_dir=out,
+        eval_episodes=episodes,
+        reset_optimizer=not keep_optimizer,
+        lr=lr,
+        resume=resume,
+        progress_bar=not quiet,
+        **parse_settings(settings),
+    )
+    result.trainer.close()
+    click.echo(
+        f"zero-shot return {result.zero_shot_mean:.1f} ± {np.std(result.zero_shot):.1f} -> "
+        f"after {result.trainer.progress['steps']:,} steps {result.final_mean:.1f} ± "
+        f"{np.std(result.final):.1f} ({episodes} episodes each)"
+    )
+    click.echo(f"checkpoint: {out / 'checkpoint.pt'}   summary: {out / 'finetune.json'}")
 
 
 @main.command("export")

@@ -39,9 +39,12 @@ class LoadedPolicy:
         """Raw observations [B, n, obs_dim] -> actions [B, n, A or 1] (numpy)."""
         if self.obs_norm is not None:
             obs = self.obs_norm.normalize(obs)
-        tensor = torch.as_tensor(obs, dtype=torch.float32)
+        device = next(self.policy.parameters()).device
+        tensor = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        if generator is not None and generator.device != device:
+            generator = None  # a CPU generator cannot drive CUDA sampling
         actions, _, _ = self.policy.act(tensor, deterministic=deterministic, generator=generator)
-        return actions.numpy()
+        return actions.cpu().numpy()
 
 
 def check_compatible(policy: Policy, vec: Any, env_id: str) -> None:

@@ -64,6 +64,8 @@ class TrainConfig:
     # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
     torch_threads: int = 1
+    # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
+    init_from: str | None = None
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -464,6 +466,63 @@ class Trainer:
         trainer = cls(env, algo, out_dir=out_dir, **train)
         trainer.restore(payload)
         return trainer
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        checkpoint_path: str | Path,
+        env: str | None = None,
+        faults: dict[str, str] | None = None,
+        reset_optimizer: bool = True,
+        lr: float | None = None,
+        out_dir: str | Path | None = None,
+        **options: Any,
+    ) -> Trainer:
+        """A new run that starts from a trained policy, for a changed robot (few-shot).
+
+        Takes the checkpoint's weights, model size, observation normaliser, value
+        normaliser and hyperparameters; `env`, `faults`, `lr` and `options` (any
+        TrainConfig field, e.g. num_envs, seed) change what is trained on and how. Step
+        counts start from 0. `reset_optimizer=False` keeps the Adam moments too.
+
+        The changed robot must give the same observation and action sizes (a removed agent
+        keeps its team-mates' one-hot ids, so those stay the same; `swimmer-N` has no ids, so
+        any length works); MAPPO's centralised critic also fixes the agent count.
+        """
+        from mat_sdk.evaluation import check_compatible
+
+        payload = checkpoint.load(checkpoint_path)
+        train = dict(payload["config"]["train"])
+        model = payload["config"]["model"]
+        train.update(n_embd=model["n_embd"], n_head=model["n_head"], n_block=model["n_block"])
+        train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), **options)
+        if lr is not None:
+            train["lr"] = lr
+        algo, env = train.pop("algo"), env or train.pop("env")
+        train.pop("env", None)
+        trainer = cls(env, algo, out_dir=out_dir, **train)
+        try:
+            pretrained = build_policy(ModelConfig(**model))
+            check_compatible(pretrained, trainer.env, env)
+            trainer.policy.load_state_dict(payload["model"])
+            trainer.obs_norm.load_state_dict(payload["obs_norm"])
+            trainer.value_norm.load_state_dict(payload["value_norm"])
+            if not reset_optimizer:
+                trainer.optimizer.load_state_dict(payload["optimizer"])
+                for group in trainer.optimizer.param_groups[:1]:
+                    group["lr"] = trainer.config.lr
+        except BaseException:
+            trainer.close()
+            raise
+        return trainer
+
+    def evaluate(self, episodes: int = 10, deterministic: bool = True) -> list[float]:
+        """Returns of full episodes of the current policy on this trainer's (changed) robot."""
+        from mat_sdk.evaluation import LoadedPolicy, evaluate
+
+        norm = self.obs_norm if self.config.normalize_obs else None
+        loaded = LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
+        return evaluate(loaded, episodes, deterministic=deterministic)
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""

@@ -1,0 +1,76 @@
+"""Few-shot fine-tuning: a pre-trained MAT adapts to a changed game faster than from scratch."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from helpers import GAME
+
+from mat_sdk.cli import main
+from mat_sdk.finetune import finetune
+from mat_sdk.trainer import Trainer
+
+CHANGE = {"agent_1": "remove"}  # 3 agents -> 2; agent_2 now follows agent_0 directly
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory):
+    with Trainer("coordination-3", "mat", **GAME) as trainer:
+        trainer.learn(16_000, progress_bar=False)
+        return trainer.save(tmp_path_factory.mktemp("pre") / "pre.pt")
+
+
+def _returns(trainer: Trainer, steps: int) -> list[float]:
+    returns = []
+    with trainer:
+        trainer.learn(
+            steps, callback=lambda t, m: returns.append(m["return_mean"]), progress_bar=False
+        )
+    return returns
+
+
+def test_finetuning_adapts_faster_than_training_from_scratch(pretrained, tmp_path):
+    steps = 10 * GAME["num_envs"] * GAME["rollout_length"]  # 10 updates each
+    finetuned = []
+    result = finetune(
+        pretrained, faults=CHANGE, steps=steps, out_dir=tmp_path / "ft", lr=1e-4,
+        eval_episodes=20, progress_bar=False,
+        callback=lambda t, m: finetuned.append(m["return_mean"]),
+    )  # fmt: skip
+    result.trainer.close()
+    assert result.trainer.env.n_agents == 2
+    scratch = _returns(Trainer("coordination-3", "mat", faults=CHANGE, **GAME), steps)
+    assert len(finetuned) == len(scratch) == 10
+    assert np.mean(finetuned[-5:]) >= 0.95 and result.final_mean >= 0.95
+    assert np.mean(finetuned[-5:]) >= np.mean(scratch[-5:]) + 0.15, (finetuned, scratch)
+    summary = json.loads((tmp_path / "ft" / "finetune.json").read_text())
+    assert summary["agents"] == ["agent_0", "agent_2"] and summary["steps"] == steps
+    assert len(summary["zero_shot"]["returns"]) == 20 and summary["final"]["mean"] >= 0.95
+
+
+def test_finetune_command_evaluates_trains_and_refuses_what_it_cannot_serve(pretrained, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "run"
+    args = ["finetune", str(pretrained), "--fault", "agent_1=remove", "--steps", "512"]
+    result = runner.invoke(main, [*args, "--out", str(out), "--episodes", "4", "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert "zero-shot return" in result.output and (out / "checkpoint.pt").exists()
+    assert json.loads((out / "finetune.json").read_text())["steps"] == 512
+
+    again = runner.invoke(main, [*args, "--out", str(out), "--quiet"])
+    assert again.exit_code == 1 and "exists" in again.output  # nothing overwritten
+    resumed = runner.invoke(main, [*args[:-1], "1024", "--out", str(out), "--resume", "--quiet"])
+    assert resumed.exit_code == 0, resumed.output
+    assert json.loads((out / "finetune.json").read_text())["steps"] == 1024
+
+    other_size = runner.invoke(main, ["finetune", str(pretrained), "coordination-4", "--quiet"])
+    assert other_size.exit_code == 1 and "observations of size 8" in other_size.output
+    assert "Traceback" not in other_size.output
+
+
+def test_mappo_refuses_a_different_agent_count(tmp_path):
+    with Trainer("coordination-3", "mappo", **GAME) as trainer:
+        path = trainer.save(tmp_path / "mappo.pt")
+    with pytest.raises(ValueError, match="tied to 3 agents"):
+        Trainer.from_pretrained(path, faults=CHANGE)
