@@ -116,19 +116,22 @@ class Policy:
             feed["available"] = self._check_available(available, batch, n)
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
-        result = dict(zip(self._outputs, self._session.run(self._outputs, feed), strict=True))
+        outputs = self._session.run(self._outputs, feed)
+        actions = outputs[0]
         if self.discrete:
-            actions = result["actions"][..., 0].astype(np.int64)
-        elif clip:
-            actions = np.clip(result["actions"], self.action_low, self.action_high)
-        else:
-            actions = result["actions"]
-        unbatch = (lambda a: a[0]) if np.ndim(obs) == 2 else (lambda a: a)
+            actions = actions[..., 0].astype(np.int64)
+        elif clip:  # in place: the output buffer is ours
+            np.minimum(
+                np.maximum(actions, self.action_low, out=actions), self.action_high, out=actions
+            )
+        single = np.ndim(obs) == 2
         if not return_values:
-            return unbatch(actions)
-        extra = {name: unbatch(result[name]) for name in self._outputs[1:-1]}
-        extra["values"] = unbatch(result["values"][..., 0])
-        return unbatch(actions), extra
+            return actions[0] if single else actions
+        extra = dict(zip(self._outputs[1:], outputs[1:], strict=True))
+        extra["values"] = extra["values"][..., 0]
+        if single:
+            return actions[0], {name: value[0] for name, value in extra.items()}
+        return actions, extra
 
     # ---- input checks: each names the problem and what to do
     def _check_obs(self, obs) -> np.ndarray:
@@ -157,11 +160,14 @@ class Policy:
                 else f"{self.min_agents}..{self.max_agents or 'any'}"
             )
             raise InputError(f"got {n} agents; this {self.algo} bundle serves {allowed}")
-        with np.errstate(over="ignore"):  # out-of-range values become inf, refused below
-            x = np.ascontiguousarray(array if array.ndim == 3 else array[None], dtype=np.float32)
-        finite = np.isfinite(x).all(axis=-1)
-        if not finite.all():
-            row, agent = np.argwhere(~finite)[0]
+        batched = array if array.ndim == 3 else array[None]
+        if batched.dtype == np.float32:
+            x = np.ascontiguousarray(batched)
+        else:
+            with np.errstate(over="ignore"):  # out-of-range values become inf, refused below
+                x = np.ascontiguousarray(batched, dtype=np.float32)
+        if not np.isfinite(x).all():
+            row, agent = np.argwhere(~np.isfinite(x).all(axis=-1))[0]
             where = f"agent {agent}" + (f" of batch row {row}" if array.ndim == 3 else "")
             raise InputError(f"obs of {where} contains NaN or inf (as float32); check the sensor")
         return x

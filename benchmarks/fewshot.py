@@ -1,0 +1,91 @@
+"""The paper's few-shot protocol on `cheetah-6x1` (issue 7; results in docs/FEWSHOT.md).
+
+For each of the six joints disabled ("zero"): the pre-trained policy's zero-shot return,
+then fine-tuning from it and MAT from scratch with the same env steps, each evaluated after
+budgets given as fractions of the pre-training steps (one run per method passes through
+every budget, so the smaller budgets are nested in the larger).
+
+    python benchmarks/fewshot.py runs/curve-mat/checkpoint.pt --budgets 0.01 0.05
+
+Rows are appended to OUT/fewshot.csv as they finish; re-running skips finished rows, so an
+interrupted experiment continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from mat_sdk import checkpoint as checkpoints
+from mat_sdk.finetune import finetune
+from mat_sdk.trainer import Trainer
+
+JOINTS = ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot")
+FIELDS = ["joint", "method", "budget", "steps", "return_mean", "return_std"]
+
+
+def _evaluate_at(budget_steps: dict[int, float], episodes: int, rows: list, joint, method):
+    """A `learn` callback that evaluates once the run passes each budget."""
+    pending = sorted(budget_steps)
+
+    def callback(trainer: Trainer, metrics: dict) -> bool:
+        while pending and trainer.progress["steps"] >= pending[0]:
+            steps = pending.pop(0)
+            returns = trainer.evaluate(episodes)
+            rows.append(
+                [joint, method, budget_steps[steps], steps, np.mean(returns), np.std(returns)]
+            )
+        return bool(pending)
+
+    return callback
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("checkpoint", help="MAT pre-trained on cheetah-6x1")
+    parser.add_argument("--budgets", type=float, nargs="+", default=[0.01, 0.05, 0.1])
+    parser.add_argument("--joints", nargs="+", default=list(JOINTS))
+    parser.add_argument("--episodes", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=Path("docs/fewshot"))
+    args = parser.parse_args()
+
+    pretrained_steps = checkpoints.load(args.checkpoint)["progress"]["steps"]
+    budget_steps = {round(b * pretrained_steps): b for b in args.budgets}
+    total = max(budget_steps)
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = args.out / "fewshot.csv"
+    done = set()
+    if table.exists():
+        with table.open() as f:
+            done = {(r["joint"], r["method"]) for r in csv.DictReader(f)}
+    else:
+        table.write_text(",".join(FIELDS) + "\n")
+    for joint in args.joints:
+        faults = {joint: "zero"}
+        for method in ("finetune", "scratch"):
+            if (joint, method) in done:
+                continue
+            rows: list = []
+            callback = _evaluate_at(budget_steps, args.episodes, rows, joint, method)
+            if method == "finetune":
+                result = finetune(
+                    args.checkpoint, faults=faults, steps=total, eval_episodes=args.episodes,
+                    callback=callback, progress_bar=False,
+                )  # fmt: skip
+                result.trainer.close()
+                zero = result.zero_shot
+                rows.insert(0, [joint, "zero-shot", 0.0, 0, np.mean(zero), np.std(zero)])
+            else:
+                with Trainer("cheetah-6x1", "mat", faults=faults) as trainer:
+                    trainer.learn(total, callback=callback, progress_bar=False)
+            with table.open("a") as f:
+                csv.writer(f).writerows(rows)
+            for row in rows:
+                print(", ".join(str(round(v, 1)) if isinstance(v, float) else str(v) for v in row))
+
+
+if __name__ == "__main__":
+    main()
