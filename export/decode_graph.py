@@ -38,6 +38,7 @@ class GraphBuilder:
         self.weights, self.prefix = weights, prefix
         self.nodes: list[onnx.NodeProto] = []
         self.initializers: list[onnx.TensorProto] = []
+        self.constants: dict[tuple, str] = {}  # one initializer per distinct value
         self._count = 0
 
     def _name(self, hint: str) -> str:
@@ -45,9 +46,12 @@ class GraphBuilder:
         return f"{self.prefix}{hint}_{self._count}"
 
     def const(self, value, hint: str = "const", dtype=np.float32) -> str:
-        name = self._name(hint)
-        self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
+        array = np.asarray(value, dtype=dtype)
+        key = (hint, array.dtype.str, array.shape, array.tobytes())
+        if key not in self.constants:
+            self.constants[key] = name = self._name(hint)
+            self.initializers.append(numpy_helper.from_array(array, name))
+        return self.constants[key]
 
     def op(self, op_type: str, *inputs: str, outputs: int | list[str] = 1, **attrs):
         names = (
@@ -98,25 +102,33 @@ def _value(name: str, shape) -> onnx.ValueInfoProto:
 
 
 def build_decode(
-    policy: Policy, obs_mean: np.ndarray, obs_scale: np.ndarray, obs_clip, value_mean, value_std
+    policy: Policy,
+    obs_mean: np.ndarray,
+    obs_scale: np.ndarray,
+    obs_clip,
+    value_mean,
+    value_std,
+    agents: int | None = None,
 ) -> onnx.ModelProto:
-    """The control-step graph for a MAT, MAT-Dec or MAPPO policy with its normalisers."""
+    """The control-step graph for a MAT, MAT-Dec or MAPPO policy with its normalisers; for
+    any agent count, or specialised (unrolled, for MAT) to exactly `agents`."""
     cfg = policy.cfg
     discrete = cfg.action_type == "discrete"
     g = GraphBuilder(_weights(policy))
+    n = agents or "agents"
     inputs = [
-        _value("obs", ["batch", "agents", cfg.obs_dim]),
-        _value("noise", ["batch", "agents", cfg.action_dim]),
+        _value("obs", ["batch", n, cfg.obs_dim]),
+        _value("noise", ["batch", n, cfg.action_dim]),
     ]
     if discrete:
-        inputs.append(_value("available", ["batch", "agents", cfg.action_dim]))
+        inputs.append(_value("available", ["batch", n, cfg.action_dim]))
     x = g.op("Mul", g.op("Sub", "obs", g.const(obs_mean)), g.const(obs_scale))
     if obs_clip is not None:
         x = g.op("Clip", x, g.const(-obs_clip), g.const(obs_clip))
     value_fold = {"scale": value_std, "shift": value_mean}  # ValueNorm's de-normalisation
     if isinstance(policy, MAT):
         rep, values = _encoder(g, x, cfg, value_fold)
-        params = _decoder(g, rep, cfg, discrete)
+        params = _decoder(g, rep, cfg, discrete, agents)
     else:
         params = _mlp(g, x, "mlp")
         values = _mappo_values(g, x, cfg, value_fold) if isinstance(policy, MAPPO) else None
@@ -131,7 +143,7 @@ def build_decode(
     for name in ["actions", *(h for h in head if h != "std")]:
         g.op("Identity", params[name], outputs=[name])
     widths = {"actions": 1 if discrete else cfg.action_dim, **dict.fromkeys(head, cfg.action_dim)}
-    outputs = [_value(name, ["batch", "agents", w]) for name, w in {**widths, "values": 1}.items()]
+    outputs = [_value(name, ["batch", n, w]) for name, w in {**widths, "values": 1}.items()]
     graph = helper.make_graph(g.nodes, "mat_decode", inputs, outputs, g.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
     model.ir_version = 10
@@ -191,11 +203,12 @@ def _decentralised_sample(g: GraphBuilder, params: str, discrete: bool) -> dict[
     return {"actions": g.op("Add", params, scaled), "mean": params}
 
 
-def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool) -> dict[str, str]:
-    """mat_sdk.model.Decoder run agent by agent with caches, as an ONNX `Loop` (see module doc)."""
-    heads, width, act = cfg.n_head, cfg.n_embd, cfg.action_dim
+def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool, agents: int | None):
+    """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
+    agents, or (`agents` given) the steps written out one after another for that count."""
+    heads, width = cfg.n_head, cfg.n_embd
     w = g.weights
-    # ---- before the loop, for all agents at once: [B, n, ...] tensors the body slices
+    # ---- before the agent steps, for all agents at once: [B, n, ...] tensors they slice
     per_agent = {"rep": rep}
     for b in range(cfg.n_block):  # the second attention's queries come from rep alone
         weight, bias = _stream_queries(w, f"decoder.blocks.{b}.attn2", heads)
@@ -211,81 +224,121 @@ def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool) -> dict[str, str]:
     start = embed[0] if discrete else w["decoder.action_encoder.0.bias"]  # agent 0's token
     width_1d = g.const([width], "width", np.int64)
     first = g.op("Expand", g.const(start[None], "start"), g.op("Concat", batch, width_1d, axis=0))
-    zeros = numpy_helper.from_array(np.zeros(1, np.float32))
     empty = g.op(
         "ConstantOfShape",
         g.op("Concat", batch, g.const([1, 0, width], "cache", np.int64), axis=0),
-        value=zeros,
+        value=numpy_helper.from_array(np.zeros(1, np.float32)),
     )
     caches = [
-        (f"{b}.{attn}", kind)
+        f"{b}.{attn}.{kind}"
         for b in range(cfg.n_block)
         for attn in ("attn1", "attn2")
         for kind in ("key", "value")
     ]
-
-    # ---- the loop body: one agent, 2-D [B, C] activations
-    body = GraphBuilder(w, prefix="agent/")
-    mine = body.op("Gather", packed, "i", axis=1)  # [B, K]: this agent's slice of everything
-    sizes = body.const([width] + [heads * width] * cfg.n_block + [act], "sizes", np.int64)
-    mine = dict(
-        zip(per_agent, body.op("Split", mine, sizes, axis=-1, outputs=len(per_agent)), strict=True)
-    )
-    x = body.layer_norm(body.gelu("embedded"), "decoder.ln")
-    present: list[str] = []
-    for b in range(cfg.n_block):
-        block = f"decoder.blocks.{b}"
-        weight, bias = _stream_queries(w, f"{block}.attn1", heads)
-        queries = body.dense(x, weight, bias, True, f"{block}.attn1.queries")
-        attended = _stream_attention(
-            body, queries, x, f"{block}.attn1", f"past.{b}.attn1", heads, present
-        )
-        x = body.layer_norm(body.op("Add", x, attended), f"{block}.ln1")
-        attended = _stream_attention(
-            body, mine[f"query2.{b}"], x, f"{block}.attn2", f"past.{b}.attn2", heads, present
-        )
-        x = body.layer_norm(body.op("Add", mine["rep"], attended), f"{block}.ln2")
-        x = body.layer_norm(
-            body.op("Add", x, _mlp_block(body, x, f"{block}.mlp", True)), f"{block}.ln3"
-        )
-    params = _head(body, x, "decoder.head", two_d=True)
-    if discrete:
-        chosen = body.op("ArgMax", body.op("Add", params, mine["shift"]), axis=-1, keepdims=0)
-        embedded = body.op("Gather", body.const(embed[1:], "choices"), chosen, axis=0)
+    step = _AgentStep(cfg, discrete, packed, list(per_agent), embed)
+    if agents is None:
+        chosen, params = _loop(g, step, first, [empty] * len(caches), caches)
     else:
-        chosen = body.op("Add", params, mine["shift"])
-        embedded = body.dense(chosen, embed, w["decoder.action_encoder.0.bias"], True, "next")
+        chosen, params = _unrolled(g, step, first, [empty] * len(caches), agents)
+    if discrete:
+        actions = g.op("Unsqueeze", g.op("Cast", chosen, to=FLOAT), g.const([2], "axis2", np.int64))
+        return {"actions": actions, "logits": _mask(g, params)}
+    return {"actions": chosen, "mean": params}
+
+
+class _AgentStep:
+    """One agent's decoder step on 2-D [B, C] activations; writes its nodes into a builder."""
+
+    def __init__(self, cfg, discrete: bool, packed: str, parts: list[str], embed: np.ndarray):
+        self.cfg, self.discrete, self.packed, self.parts, self.embed = (
+            cfg, discrete, packed, parts, embed,
+        )  # fmt: skip
+
+    def __call__(self, g: GraphBuilder, index: str, embedded: str, past: list[str]):
+        """-> (next agent's embedded token, present caches, chosen action, action params)."""
+        cfg, w, heads, width = self.cfg, g.weights, self.cfg.n_head, self.cfg.n_embd
+        mine = g.op("Gather", self.packed, index, axis=1)  # [B, K]: this agent's share
+        sizes = [width] + [heads * width] * cfg.n_block + [cfg.action_dim]
+        sizes = g.const(sizes, "sizes", np.int64)
+        mine = dict(
+            zip(
+                self.parts,
+                g.op("Split", mine, sizes, axis=-1, outputs=len(self.parts)),
+                strict=True,
+            )
+        )
+        x = g.layer_norm(g.gelu(embedded), "decoder.ln")
+        present: list[str] = []
+        for b in range(cfg.n_block):
+            block, cache = f"decoder.blocks.{b}", past[4 * b : 4 * b + 4]
+            weight, bias = _stream_queries(w, f"{block}.attn1", heads)
+            queries = g.dense(x, weight, bias, True, f"{block}.attn1.queries")
+            attended = _stream_attention(g, queries, x, f"{block}.attn1", cache[:2], heads, present)
+            x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
+            query = mine[f"query2.{b}"]
+            attended = _stream_attention(g, query, x, f"{block}.attn2", cache[2:], heads, present)
+            x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
+            x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp", True)), f"{block}.ln3")
+        params = _head(g, x, "decoder.head", two_d=True)
+        if self.discrete:
+            chosen = g.op("ArgMax", g.op("Add", params, mine["shift"]), axis=-1, keepdims=0)
+            embedded = g.op("Gather", g.const(self.embed[1:], "choices"), chosen, axis=0)
+        else:
+            chosen = g.op("Add", params, mine["shift"])
+            bias = w["decoder.action_encoder.0.bias"]
+            embedded = g.dense(chosen, self.embed, bias, True, "decoder.action_encoder")
+        return embedded, present, chosen, params
+
+
+def _loop(g: GraphBuilder, step: _AgentStep, first: str, empty: list[str], caches: list[str]):
+    """The agent steps as the body of an ONNX `Loop`: any agent count. -> [B, n, ...] outputs."""
+    body = GraphBuilder(g.weights, prefix="agent/")
+    body.constants = g.constants  # the body reads the weights from the main graph (outer scope)
+    past = [f"past.{c}" for c in caches]
+    embedded, present, chosen, params = step(body, "i", "embedded", past)
     body.op("Identity", "cond", outputs=["cond_out"])
-    cache_shape = ["batch", 1, "past", width]
+    cache_shape = ["batch", 1, "past", step.cfg.n_embd]
+    act = step.cfg.action_dim
     body_inputs = [
         helper.make_tensor_value_info("i", INT64, []),
         helper.make_tensor_value_info("cond", TensorProto.BOOL, []),
-        _value("embedded", ["batch", width]),
-        *(_value(f"past.{name}.{kind}", cache_shape) for name, kind in caches),
+        _value("embedded", ["batch", step.cfg.n_embd]),
+        *(_value(p, cache_shape) for p in past),
     ]
+    chosen_info = (
+        helper.make_tensor_value_info(chosen, INT64, ["batch"])
+        if step.discrete
+        else _value(chosen, ["batch", act])
+    )
     body_outputs = [
         helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
-        _value(embedded, ["batch", width]),
+        _value(embedded, ["batch", step.cfg.n_embd]),
         *(_value(p, cache_shape) for p in present),
-        helper.make_tensor_value_info(
-            chosen, INT64 if discrete else FLOAT, ["batch"] if discrete else ["batch", act]
-        ),
+        chosen_info,
         _value(params, ["batch", act]),
     ]
     loop_body = helper.make_graph(body.nodes, "agent_step", body_inputs, body_outputs)
-    g.initializers += body.initializers  # outer scope: the body reads them from the main graph
-    agents = g.op("Squeeze", g.op("Shape", rep, start=1, end=2))
-    carried = [first, *(empty for _ in caches)]
+    g.initializers += body.initializers
+    agents = g.op("Squeeze", g.op("Shape", "obs", start=1, end=2))
+    carried = [first, *empty]
     *_, chosen, params = g.op(
         "Loop", agents, g.const(True, "true", np.bool_), *carried,
         outputs=len(carried) + 2, body=loop_body,
     )  # fmt: skip
     params = g.op("Transpose", params, perm=[1, 0, 2])  # [n, B, A] -> [B, n, A]
-    if discrete:
-        chosen = g.op("Cast", g.op("Transpose", chosen, perm=[1, 0]), to=FLOAT)
-        actions = g.op("Unsqueeze", chosen, g.const([2], "axis2", np.int64))
-        return {"actions": actions, "logits": _mask(g, params)}
-    return {"actions": g.op("Transpose", chosen, perm=[1, 0, 2]), "mean": params}
+    chosen = g.op("Transpose", chosen, perm=[1, 0] if step.discrete else [1, 0, 2])
+    return chosen, params
+
+
+def _unrolled(g: GraphBuilder, step: _AgentStep, first: str, past: list[str], agents: int):
+    """The agent steps written out for exactly `agents` agents: no loop machinery at all."""
+    embedded, chosen, params = first, [], []
+    axis1 = g.const([1], "axis1", np.int64)
+    for i in range(agents):
+        embedded, past, choice, param = step(g, g.const(i, "agent", np.int64), embedded, past)
+        chosen.append(g.op("Unsqueeze", choice, axis1))
+        params.append(g.op("Unsqueeze", param, axis1))
+    return g.op("Concat", *chosen, axis=1), g.op("Concat", *params, axis=1)
 
 
 def _stream_queries(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarray]:
@@ -313,7 +366,7 @@ def _stream_output(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarr
     return weight.astype(np.float32), (bv @ wp.T + bp).astype(np.float32)
 
 
-def _stream_attention(g: GraphBuilder, queries, stream, attn, past, heads, present):
+def _stream_attention(g: GraphBuilder, queries, stream, attn, past: list[str], heads, present):
     """One agent's stream queries [B, H*C] attend over the cached stream plus its own entry
     `stream` [B, C]: ONNX `Attention` with H query heads sharing one key/value head of width C
     (the stream serves as both; scale already folded into the queries). Appends the caches."""
@@ -321,7 +374,7 @@ def _stream_attention(g: GraphBuilder, queries, stream, attn, past, heads, prese
     queries = g.op("Reshape", queries, g.const([0, heads, 1, width], "heads", np.int64))
     entry = g.op("Reshape", stream, g.const([0, 1, 1, width], "entry", np.int64))
     mixed, *caches = g.op(
-        "Attention", queries, entry, entry, "", f"{past}.key", f"{past}.value",
+        "Attention", queries, entry, entry, "", *past,
         outputs=3, scale=1.0,
     )  # fmt: skip
     present += caches

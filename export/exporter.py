@@ -52,7 +52,12 @@ class ExportError(ValueError):
 def export(
     checkpoint_path: str | Path, out_dir: str | Path, force: bool = False, agent_counts=AGENT_COUNTS
 ) -> dict[str, Any]:
-    """Write `encoder.onnx`, `decoder_step.onnx` and `manifest.json`; returns the manifest."""
+    """Write the bundle (DESIGN §5) and return its manifest.
+
+    `encoder.onnx`, `decoder_step.onnx`, `decode.onnx` (any agent count) and, for MAT,
+    `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),
+    which the runtime uses when it is given exactly N agents.
+    """
     out_dir = Path(out_dir)
     if out_dir.exists() and not force:
         raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
@@ -65,20 +70,24 @@ def export(
     try:
         graphs = _export_graphs(policy, normalizer, value_scale, staging)
         manifest = _manifest(payload, cfg, graphs, checkpoint_path)
-        decode = build_decode(
-            policy,
+        folded = (
             normalizer.mean.numpy(),
             normalizer.scale.numpy(),
             normalizer.clip,
             float(value_scale.mean),
             float(value_scale.std),
         )
-        (staging / "decode.onnx").write_bytes(decode.SerializeToString())
-        graphs["decode.onnx"] = {
-            "inputs": [i.name for i in decode.graph.input],
-            "outputs": [o.name for o in decode.graph.output],
-            "opset": DECODE_OPSET,
-        }
+        specialised = [cfg.n_agents] if cfg.algo == "mat" else []
+        for agents in [None, *specialised]:
+            name = "decode.onnx" if agents is None else f"decode_n{agents}.onnx"
+            decode = build_decode(policy, *folded, agents=agents)
+            (staging / name).write_bytes(decode.SerializeToString())
+            graphs[name] = {
+                "inputs": [i.name for i in decode.graph.input],
+                "outputs": [o.name for o in decode.graph.output],
+                "opset": DECODE_OPSET,
+                "agents": agents,  # None: any count
+            }
         manifest["graphs"] = dict(graphs)
         parity = measure_parity(policy, normalizer, value_scale, staging, counts)
         worst = max(parity["max_abs_diff"].values())
@@ -270,8 +279,11 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
     options.intra_op_num_threads = 1
     encoder = ort.InferenceSession(str(directory / "encoder.onnx"), options)
     step = ort.InferenceSession(str(directory / "decoder_step.onnx"), options)
-    decode = ort.InferenceSession(str(directory / "decode.onnx"), options)
+    decoders = {None: ort.InferenceSession(str(directory / "decode.onnx"), options)}
+    for path in directory.glob("decode_n*.onnx"):  # specialised to one agent count
+        decoders[int(path.stem.removeprefix("decode_n"))] = ort.InferenceSession(str(path), options)
     cfg, rng = policy.cfg, np.random.default_rng(0)
+    counts = sorted({*counts, *(n for n in decoders if n is not None)})
     result: dict[str, float] = {}
     for n in counts:
         obs = (2.0 * rng.standard_normal((2, n, cfg.obs_dim))).astype(np.float32)
@@ -293,10 +305,16 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
             noise = -np.log(-np.log(rng.uniform(1e-9, 1.0, noise.shape))).astype(np.float32)
         sampled, sampled_params = torch_decode(policy, x, torch.from_numpy(noise))
         pairs = [(free["actions"], actions.numpy())]
-        for given, (expected, expected_params) in (
-            (np.zeros_like(noise), (actions.numpy(), params.numpy())),
-            (noise, (sampled.numpy(), sampled_params.numpy())),
-        ):
+        runs = [
+            (decode, given, expected)
+            for count, decode in decoders.items()
+            if count in (None, n)
+            for given, expected in (
+                (np.zeros_like(noise), (actions.numpy(), params.numpy())),
+                (noise, (sampled.numpy(), sampled_params.numpy())),
+            )
+        ]
+        for decode, given, (expected, expected_params) in runs:
             feed = {"obs": obs, "noise": given}
             if cfg.action_type == "discrete":
                 feed["available"] = np.ones_like(noise)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,8 @@ class Bundle:
     graphs: dict[str, bytes]
 
 
-def read_bundle(path: str | Path, graph_names: tuple[str, ...]) -> Bundle:
+def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle:
+    """The manifest, checked, and the graphs `select(manifest)` names, each checked by sha256."""
     path = Path(path)
     manifest_path = path / "manifest.json"
     if not path.is_dir():
@@ -45,7 +47,7 @@ def read_bundle(path: str | Path, graph_names: tuple[str, ...]) -> Bundle:
             f"{', '.join(map(str, SUPPORTED_VERSIONS))}; upgrade mat-sdk or re-export with this one"
         )
     graphs = {}
-    for name in graph_names:
+    for name in select(manifest):
         entry = manifest.get("graphs", {}).get(name)
         if entry is None:
             raise BundleError(f"{manifest_path}: lists no {name}; re-export the bundle")

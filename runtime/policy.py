@@ -34,15 +34,21 @@ import onnxruntime as ort
 from mat_runtime.bundle import read_bundle
 from mat_runtime.errors import InputError
 
-GRAPH = "decode.onnx"
+GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
 _ZERO_NOISE_CACHE = 32  # distinct (B, n) shapes whose zero-noise buffers are kept
 
 
 class Policy:
     """A loaded bundle. Create with `Policy.load`; act with `act`."""
 
-    def __init__(self, path: Path, manifest: dict[str, Any], session: ort.InferenceSession):
-        self.path, self.manifest, self._session = path, manifest, session
+    def __init__(
+        self,
+        path: Path,
+        manifest: dict[str, Any],
+        sessions: dict[int | None, ort.InferenceSession],
+    ):
+        self.path, self.manifest = path, manifest
+        self._session, self._specialised = sessions[None], sessions
         action = manifest["action"]
         self.algo: str = manifest["algo"]
         self.env_id: str | None = manifest.get("env_id")
@@ -72,15 +78,20 @@ class Policy:
         unknown = [p for p in providers if p not in available]
         if unknown:
             raise InputError(f"providers {unknown} are not available here; available: {available}")
-        bundle = read_bundle(path, (GRAPH,))
+        bundle = read_bundle(path, _decode_graphs)
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.log_severity_level = 3  # warnings about unused initializers are not the user's
-        session = ort.InferenceSession(bundle.graphs[GRAPH], options, providers=providers)
-        return cls(bundle.path, bundle.manifest, session)
+        sessions = {
+            bundle.manifest["graphs"][name].get("agents"): ort.InferenceSession(
+                data, options, providers=providers
+            )
+            for name, data in bundle.graphs.items()
+        }
+        return cls(bundle.path, bundle.manifest, sessions)
 
     def __repr__(self) -> str:
         agents = f"{self.min_agents}..{self.max_agents or 'any'}"
@@ -116,7 +127,8 @@ class Policy:
             feed["available"] = self._check_available(available, batch, n)
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
-        outputs = self._session.run(self._outputs, feed)
+        session = self._specialised.get(n, self._session)
+        outputs = session.run(self._outputs, feed)
         actions = outputs[0]
         if self.discrete:
             actions = actions[..., 0].astype(np.int64)
@@ -219,3 +231,14 @@ class Policy:
             return rng.standard_normal(shape, dtype=np.float32)
         uniform = rng.random(shape, dtype=np.float32)
         return -np.log(-np.log(np.maximum(uniform, np.finfo(np.float32).tiny)))  # Gumbel
+
+
+def _decode_graphs(manifest: dict) -> list[str]:
+    """decode.onnx, plus the graphs specialised to one agent count that the bundle lists."""
+    graphs = manifest.get("graphs", {})
+    specialised = [
+        name
+        for name, entry in graphs.items()
+        if name.startswith("decode_n") and isinstance(entry, dict) and entry.get("agents")
+    ]
+    return [GRAPH, *specialised]

@@ -26,10 +26,12 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path)
     bundle = tmp_path / "bundle"
     assert sorted(p.name for p in bundle.iterdir()) == [
         "decode.onnx",
+        "decode_n2.onnx",  # unrolled for hopper-2x2's two agents
         "decoder_step.onnx",
         "encoder.onnx",
         "manifest.json",
     ]
+    assert manifest["graphs"]["decode_n2.onnx"]["agents"] == 2
     diffs = manifest["parity"]["max_abs_diff"]
     assert list(diffs) == ["1", "2", "6", "17", "64"]
     assert max(diffs.values()) <= 1e-5
@@ -59,14 +61,20 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path)
 def test_export_is_deterministic(mat_checkpoint, tmp_path):
     export(mat_checkpoint, tmp_path / "a")
     export(mat_checkpoint, tmp_path / "b")
-    for name in ("encoder.onnx", "decoder_step.onnx", "decode.onnx", "manifest.json"):
+    for name in (
+        "encoder.onnx",
+        "decoder_step.onnx",
+        "decode.onnx",
+        "decode_n2.onnx",
+        "manifest.json",
+    ):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 
 
 @pytest.mark.parametrize(
     ("env_id", "algo", "kind", "counts"),
     [
-        ("coordination-3", "mat", "autoregressive", ["1", "2", "6", "17", "64"]),
+        ("coordination-3", "mat", "autoregressive", ["1", "2", "3", "6", "17", "64"]),
         ("hopper-2x2", "mat-dec", "decentralised", ["1", "2", "6", "17", "64"]),
         ("coordination-3", "mappo", "decentralised", ["3"]),
     ],

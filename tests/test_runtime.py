@@ -15,7 +15,7 @@ from mat_export import export
 from mat_runtime import BundleError, InputError, Policy
 from mat_sdk.evaluation import LoadedPolicy
 
-COUNTS = (1, 2, 6, 17, 64)
+COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
 
 
 @pytest.fixture(scope="module")
