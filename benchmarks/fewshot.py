@@ -43,6 +43,55 @@ def _evaluate_at(budget_steps: dict[int, float], episodes: int, rows: list, join
     return callback
 
 
+def report(table: Path, plot: Path) -> str:
+    """A Markdown table (joint x method/budget, mean ± std) and a bar chart of the CSV."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with table.open() as f:
+        rows = list(csv.DictReader(f))
+    budgets = sorted({float(r["budget"]) for r in rows if r["method"] != "zero-shot"})
+    joints = list(dict.fromkeys(r["joint"] for r in rows))
+    cell = {(r["joint"], r["method"], float(r["budget"])): r for r in rows}
+    columns = [("zero-shot", 0.0)] + [(m, b) for b in budgets for m in ("finetune", "scratch")]
+    header = ["joint disabled"] + [
+        "zero-shot" if m == "zero-shot" else f"{m} {b:.0%} ({int(float(_steps(rows, b))):,} steps)"
+        for m, b in columns
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for joint in joints:
+        values = []
+        for key in columns:
+            r = cell.get((joint, *key))
+            values.append(
+                f"{float(r['return_mean']):.0f} ± {float(r['return_std']):.0f}" if r else ""
+            )
+        lines.append(f"| {joint} | " + " | ".join(values) + " |")
+    figure, axis = plt.subplots(figsize=(9, 4))
+    width = 0.8 / len(columns)
+    for k, key in enumerate(columns):
+        heights = [
+            float(cell[(j, *key)]["return_mean"]) if (j, *key) in cell else 0 for j in joints
+        ]
+        label = key[0] if key[0] == "zero-shot" else f"{key[0]} {key[1]:.0%}"
+        axis.bar(np.arange(len(joints)) + k * width, heights, width, label=label)
+    axis.set_xticks(np.arange(len(joints)) + 0.4 - width / 2, joints)
+    axis.set_ylabel("episode return")
+    axis.set_title("cheetah-6x1, one joint disabled: fine-tuned MAT vs MAT from scratch")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(plot, dpi=120)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    return text
+
+
+def _steps(rows: list[dict], budget: float) -> str:
+    return next(r["steps"] for r in rows if float(r["budget"]) == budget)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoint", help="MAT pre-trained on cheetah-6x1")
@@ -50,7 +99,11 @@ def main() -> None:
     parser.add_argument("--joints", nargs="+", default=list(JOINTS))
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("docs/fewshot"))
+    parser.add_argument("--report", action="store_true", help="Only print the table and plot.")
     args = parser.parse_args()
+    if args.report:
+        report(args.out / "fewshot.csv", args.out / "fewshot.png")
+        return
 
     pretrained_steps = checkpoints.load(args.checkpoint)["progress"]["steps"]
     budget_steps = {round(b * pretrained_steps): b for b in args.budgets}
@@ -84,7 +137,8 @@ def main() -> None:
             with table.open("a") as f:
                 csv.writer(f).writerows(rows)
             for row in rows:
-                print(", ".join(str(round(v, 1)) if isinstance(v, float) else str(v) for v in row))
+                print(", ".join(str(round(v, 3)) if isinstance(v, float) else str(v) for v in row))
+    report(table, args.out / "fewshot.png")
 
 
 if __name__ == "__main__":

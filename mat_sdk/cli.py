@@ -155,10 +155,31 @@ def parse_settings(values: tuple[str, ...]) -> dict:
     metavar="KEY=VALUE",
     help="Any TrainConfig field, e.g. lr=3e-4.",
 )
+@click.option(
+    "--ray",
+    "ray_address",
+    is_flag=False,
+    flag_value="local",
+    default=None,
+    metavar="[ADDRESS]",
+    help="Rollouts on --workers Ray actors: a local Ray instance, or ADDRESS (e.g. auto).",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def train(
-    env_id, algo, steps, num_envs, workers, seed, device, out_dir, resume, faults, settings, quiet
+    env_id,
+    algo,
+    steps,
+    num_envs,
+    workers,
+    seed,
+    device,
+    out_dir,
+    resume,
+    faults,
+    settings,
+    ray_address,
+    quiet,
 ) -> None:
     """Train a policy on ENV_ID with PPO (the paper's MA-MuJoCo recipe by default).
 
@@ -166,6 +187,10 @@ def train(
     Writes OUT/checkpoint.pt (every 10 updates and at the end), OUT/metrics.csv,
     OUT/tensorboard/ and OUT/learning_curve.png.
     Example: mat train cheetah-6x1 --steps 2000000 --workers 2 --out runs/cheetah
+
+    \b
+    With --ray, --workers counts Ray actors (each steps num-envs/workers copies); needs
+    pip install 'mat-sdk[ray]'. A dead worker is replaced and its share re-collected.
     """
     from pathlib import Path
 
@@ -192,6 +217,7 @@ def train(
             seed=seed,
             device=device,
             faults=parse_faults(faults),
+            ray=ray_address,
             **parse_settings(settings),
         )
     with trainer:

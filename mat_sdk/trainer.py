@@ -66,6 +66,9 @@ class TrainConfig:
     torch_threads: int = 1
     # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
     init_from: str | None = None
+    # Ray: "local" or a cluster address. Rollouts then run on `workers` Ray actors, each
+    # stepping its share of the num_envs copies; the learner (this process) updates.
+    ray: str | None = None
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -130,10 +133,15 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
-        self.env = envs.make_vec(
+        self._remote = None
+        if cfg.ray is not None:
+            from mat_sdk.ray_rollouts import RayRollouts
+
+            self._remote = RayRollouts(cfg)
+        self.env = envs.make_vec(  # with Ray, one local copy: the env's shapes and names
             cfg.env,
-            cfg.num_envs,
-            workers=cfg.workers,
+            1 if self._remote else cfg.num_envs,
+            workers=0 if self._remote else cfg.workers,
             seed=cfg.seed,
             faults=cfg.faults,
             **cfg.env_options,
@@ -276,24 +284,32 @@ class Trainer:
 
     @torch.no_grad()
     def _rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:
+        """Collect `rollout_length` steps on every env (here or on Ray workers), then GAE."""
+        if self._remote is not None:
+            trajectories = self._remote.collect(self)
+            self.obs_norm.update(trajectories.pop("raw_obs"))
+        else:
+            trajectories = self._collect(update_norm=True)
+        finished = trajectories.pop("finished")
+        return self._advantages(trajectories), finished
+
+    @torch.no_grad()
+    def _collect(self, update_norm: bool, keep_raw: bool = False) -> dict[str, Any]:
+        """`rollout_length` steps of this trainer's envs with the current policy.
+
+        `update_norm`: update the observation statistics as observations arrive (local
+        training); Ray workers act with the learner's frozen statistics and return the raw
+        observations (`keep_raw`) for the learner to fold in.
+        """
         cfg, env, device = self.config, self.env, self.device
         T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
-        buffers = {
-            name: []
-            for name in (
-                "obs",
-                "actions",
-                "log_probs",
-                "values",
-                "rewards",
-                "terminated",
-                "done",
-                "order",
-            )
-        }
+        names = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done", "order")
+        buffers: dict[str, list] = {name: [] for name in names}
+        raw = []
         bootstrap = torch.zeros(T, E, n, 1, device=device)
         finished: list[float] = []
-        obs = self._observe(self._next_obs, update=True)
+        raw.append(self._next_obs)
+        obs = self._observe(self._next_obs, update=update_norm)
         for t in range(T):
             order = self._agent_order(E)
             actions, log_probs, values = self._act(obs, order)
@@ -306,28 +322,39 @@ class Trainer:
                 ("order", order),
             ):
                 buffers[name].append(value)
-            buffers["rewards"].append(
-                torch.as_tensor(reward, dtype=torch.float32, device=device).view(E, 1, 1)
-            )
-            buffers["terminated"].append(
-                torch.as_tensor(terminated, dtype=torch.float32, device=device).view(E, 1, 1)
-            )
-            buffers["done"].append(
-                torch.as_tensor(terminated | truncated, dtype=torch.float32, device=device).view(
-                    E, 1, 1
+            for name, flags in (
+                ("rewards", reward),
+                ("terminated", terminated),
+                ("done", terminated | truncated),
+            ):
+                buffers[name].append(
+                    torch.as_tensor(flags, dtype=torch.float32, device=device).view(E, 1, 1)
                 )
-            )
             if truncated.any():  # bootstrap from the last observation of a time-limited episode
                 final = self._observe(info["final_obs"][truncated])
                 bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
             finished += info["episode_return"][info["done"]].tolist()
             self._next_obs = next_obs
-            obs = self._observe(next_obs, update=t < T - 1)
-        last_values = self.policy.values(obs)
-        batch = {k: torch.stack(v) for k, v in buffers.items() if k != "order"}
+            if t < T - 1:
+                raw.append(next_obs)
+            obs = self._observe(next_obs, update=update_norm and t < T - 1)
+        trajectories: dict[str, Any] = {
+            k: torch.stack(v) for k, v in buffers.items() if k != "order"
+        }
         if cfg.shuffle_agents:
-            batch["order"] = torch.stack(buffers["order"])
+            trajectories["order"] = torch.stack(buffers["order"])
+        trajectories["bootstrap"] = bootstrap
+        trajectories["last_values"] = self.policy.values(obs)
+        trajectories["finished"] = finished
+        if keep_raw:
+            trajectories["raw_obs"] = np.concatenate(raw)
+        return trajectories
+
+    def _advantages(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """GAE on the shared reward, per agent, with ValueNorm'd values de-normalised."""
+        cfg = self.config
         denorm = self.value_norm.denormalize
+        bootstrap, last_values = batch.pop("bootstrap"), batch.pop("last_values")
         values = denorm(batch["values"])
         next_values = torch.cat((values[1:], denorm(last_values)[None]))
         ended = batch["done"].expand_as(next_values) > 0
@@ -343,7 +370,7 @@ class Trainer:
         )
         batch["returns"] = advantages + values
         batch["advantages"] = advantages
-        return batch, finished
+        return batch
 
     def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         cfg = self.config
@@ -541,6 +568,8 @@ class Trainer:
 
     def close(self) -> None:
         self.env.close()
+        if self._remote is not None:
+            self._remote.close()
 
     def __enter__(self) -> Trainer:
         return self

@@ -1,0 +1,129 @@
+"""Rollouts on Ray actors: each worker steps its share of the env copies with the learner's
+current policy; the learner (the `Trainer` that owns this) gathers, updates and broadcasts.
+
+    mat train cheetah-6x1 --ray --workers 4            # a local Ray instance
+    mat train cheetah-6x1 --ray auto --workers 32      # an existing cluster (`ray start`)
+
+Only imported when `TrainConfig.ray` is set, so Ray stays an optional extra
+(`pip install 'mat-sdk[ray]'`). Worker k steps env copies `offset_k .. offset_k + share_k`
+with the same seeds a local run gives those copies. A worker that dies (its process killed,
+its node lost) is replaced by a fresh one, which collects the dead worker's share of the
+current update again: no update is lost or shortened.
+
+Workers act with the torch policy. Acting through ONNX Runtime measured faster for batched
+rollouts (BENCHMARKS.md, B = 40, n = 6: `decode.onnx` ~1.6 ms vs torch's KV-cached ~6.6 ms
+per step) and that graph is built from the weights without `torch.onnx`
+(`mat_export.decode_graph`), so ONNX workers are the next lever; not done yet.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+_REPLACEMENT_SEED_STRIDE = 7919  # a fresh worker's envs must not replay the dead one's
+
+
+class RolloutWorker:
+    """A Ray actor: a local trainer without learning, for its share of the env copies."""
+
+    def __init__(self, config: dict[str, Any], offset: int, share: int, generation: int):
+        from mat_sdk.trainer import Trainer
+
+        options = {k: v for k, v in config.items() if k not in ("env", "algo", "ray")}
+        options.update(
+            num_envs=share,
+            workers=0,
+            device="cpu",
+            seed=config["seed"] + offset + _REPLACEMENT_SEED_STRIDE * generation,
+        )
+        self.trainer = Trainer(config["env"], config["algo"], **options)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def collect(self, weights: dict, obs_norm: dict) -> dict[str, Any]:
+        self.trainer.policy.load_state_dict(weights)
+        self.trainer.obs_norm.load_state_dict(obs_norm)
+        return self.trainer._collect(update_norm=False, keep_raw=True)
+
+
+class RayRollouts:
+    """The learner's handle on its Ray workers."""
+
+    def __init__(self, config):
+        import ray
+
+        self.ray = ray
+        self._started_ray = not ray.is_initialized()
+        if self._started_ray:
+            local = config.ray in ("", "local")
+            ray.init(
+                address=None if local else config.ray,
+                num_cpus=max(os.cpu_count() or 1, config.workers) if local else None,
+                object_store_memory=256 * 1024**2 if local else None,
+                include_dashboard=False,
+                log_to_driver=False,
+            )
+        workers = max(1, config.workers)
+        if workers > config.num_envs:
+            raise ValueError(
+                f"{workers} Ray workers need at least as many envs, not {config.num_envs}"
+            )
+        shares = np.array_split(np.arange(config.num_envs), workers)
+        self._plan = [(int(part[0]), len(part)) for part in shares]
+        self._config = asdict(config)
+        self._actor = ray.remote(num_cpus=1, max_restarts=0)(RolloutWorker)
+        self.replacements = 0
+        self.actors = [self._start(k, generation=0) for k in range(workers)]
+
+    def _start(self, k: int, generation: int):
+        offset, share = self._plan[k]
+        return self._actor.remote(self._config, offset, share, generation)
+
+    def collect(self, trainer) -> dict[str, Any]:
+        """Every worker's trajectories for one update, joined along the env axis."""
+        ray = self.ray
+        weights = ray.put({k: v.detach().cpu() for k, v in trainer.policy.state_dict().items()})
+        obs_norm = ray.put(trainer.obs_norm.state_dict())
+        pending = [actor.collect.remote(weights, obs_norm) for actor in self.actors]
+        parts = []
+        for k, future in enumerate(pending):
+            while True:
+                try:
+                    parts.append(ray.get(future))
+                    break
+                except ray.exceptions.RayActorError as error:
+                    self.replacements += 1
+                    log.warning("Ray rollout worker %d died (%s); replacing it", k, error)
+                    self.actors[k] = self._start(k, generation=self.replacements)
+                    future = self.actors[k].collect.remote(weights, obs_norm)
+        return _join(parts, trainer.device)
+
+    def close(self) -> None:
+        for actor in self.actors:
+            self.ray.kill(actor)
+        self.actors = []
+        if self._started_ray:
+            self.ray.shutdown()
+
+
+def _join(parts: list[dict[str, Any]], device: torch.device) -> dict[str, Any]:
+    joined: dict[str, Any] = {}
+    for key in parts[0]:
+        values = [part[key] for part in parts]
+        if key == "finished":
+            joined[key] = [r for value in values for r in value]
+        elif key == "raw_obs":
+            joined[key] = np.concatenate(values)
+        elif key == "last_values":
+            joined[key] = torch.cat(values, dim=0).to(device)
+        else:  # [T, E, ...]
+            joined[key] = torch.cat(values, dim=1).to(device)
+    return joined
