@@ -296,7 +296,7 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
         forced = decode_with_ort(policy, step, rep, actions.numpy())
         free = decode_with_ort(policy, step, rep, None)
         diffs = [
-            np.abs(ort_values - torch_values).max(),
+            _value_diff(ort_values, torch_values),
             np.abs(forced["params"] - params.numpy()).max(),
             np.abs(free["params"] - params.numpy()).max(),
         ]
@@ -326,7 +326,7 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
                     got["logits" if cfg.action_type == "discrete" else "mean"] - expected_params
                 ).max()
             )
-            diffs.append(np.abs(got["values"] - torch_values).max())
+            diffs.append(_value_diff(got["values"], torch_values))
             pairs.append((got["actions"], expected))
         for got, expected in pairs:
             if cfg.action_type == "continuous":
@@ -334,7 +334,17 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
             elif not np.array_equal(got, expected):
                 diffs.append(float("inf"))  # a different discrete choice
         result[str(n)] = float(max(diffs))
-    return {"max_abs_diff": result, "limit": PARITY_LIMIT, "agent_counts": list(counts)}
+    return {
+        "max_abs_diff": result,
+        "limit": PARITY_LIMIT,
+        "agent_counts": list(counts),
+        "measures": "actions and distribution parameters: absolute; values (return units): "
+        "relative to max(1, |value|), as float32 cannot hold large returns to 1e-5",
+    }
+
+
+def _value_diff(got: np.ndarray, expected: np.ndarray) -> float:
+    return float(np.abs(got - expected).max() / max(1.0, float(np.abs(expected).max())))
 
 
 def torch_decode(policy, x: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
