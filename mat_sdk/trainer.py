@@ -221,10 +221,7 @@ class Trainer:
                 f"obs must be [n, {self.env.obs_dim}] or [B, n, {self.env.obs_dim}], "
                 f"got {obs.shape}"
             )
-        actions, _, _ = self.policy.act(
-            self._observe(batch), deterministic=deterministic, generator=self.generator
-        )
-        actions = actions.cpu().numpy()
+        actions = self._as_loaded().act(batch, deterministic, self.generator)
         return actions[0] if single else actions
 
     # ---------------------------------------------------------------- training
@@ -545,11 +542,16 @@ class Trainer:
 
     def evaluate(self, episodes: int = 10, deterministic: bool = True) -> list[float]:
         """Returns of full episodes of the current policy on this trainer's (changed) robot."""
-        from mat_sdk.evaluation import LoadedPolicy, evaluate
+        from mat_sdk.evaluation import evaluate
+
+        return evaluate(self._as_loaded(), episodes, deterministic=deterministic)
+
+    def _as_loaded(self):
+        """This trainer's policy as `mat eval` sees a checkpoint: weights + obs normaliser."""
+        from mat_sdk.evaluation import LoadedPolicy
 
         norm = self.obs_norm if self.config.normalize_obs else None
-        loaded = LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
-        return evaluate(loaded, episodes, deterministic=deterministic)
+        return LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""
