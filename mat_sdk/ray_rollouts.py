@@ -50,8 +50,10 @@ class RolloutWorker:
 
     def collect(self, weights: dict, obs_norm: dict) -> dict[str, Any]:
         self.trainer.policy.load_state_dict(weights)
+        # As in a local run, the observation statistics follow the observations as they
+        # arrive; the learner then folds every worker's raw observations into its own.
         self.trainer.obs_norm.load_state_dict(obs_norm)
-        return self.trainer._collect(update_norm=False, keep_raw=True)
+        return self.trainer._collect(update_norm=True, keep_raw=True)
 
 
 class RayRollouts:

@@ -294,9 +294,9 @@ class Trainer:
     def _collect(self, update_norm: bool, keep_raw: bool = False) -> dict[str, Any]:
         """`rollout_length` steps of this trainer's envs with the current policy.
 
-        `update_norm`: update the observation statistics as observations arrive (local
-        training); Ray workers act with the learner's frozen statistics and return the raw
-        observations (`keep_raw`) for the learner to fold in.
+        `update_norm`: update the observation statistics as observations arrive.
+        `keep_raw`: also return the raw observations, for a learner to fold into its own
+        statistics (Ray workers collect with a copy of the learner's).
         """
         cfg, env, device = self.config, self.env, self.device
         T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents

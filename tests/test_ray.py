@@ -44,7 +44,6 @@ def test_two_ray_workers_learn_the_game_and_a_killed_worker_is_replaced():
         per_update = GAME["num_envs"] * GAME["rollout_length"]
         assert trainer.progress["updates"] == -(-steps // per_update)  # none lost
         assert len(returns) == trainer.progress["updates"]
-    # It learns: a 5-update average reaches near-optimal (random play scores 2/27 = 0.07).
-    # Unlike local runs, Ray runs have shown a temporary dip after that (open issue 8).
-    best = max(np.convolve(returns, np.ones(5) / 5, mode="valid"))
-    assert best >= 0.9, returns
+        final = np.mean(trainer.evaluate(episodes=50))
+    # as the local test asks of a local run; random play scores 2/27 = 0.07
+    assert np.mean(returns[-5:]) >= 0.9 and final >= 0.9, (returns, final)
