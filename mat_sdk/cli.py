@@ -420,7 +420,23 @@ def bench_runtime(seconds: float, agents: str) -> None:
     run(agent_counts=counts, seconds=seconds)
 
 
-@bench.command("train")
+@bench.command("scaling")
+@click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
+@click.option("--updates", default=3, show_default=True, help="Updates per variant.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Recipe changes.")
+@user_errors
+def bench_scaling(env_id: str, updates: int, settings: tuple[str, ...]) -> None:
+    """Env-steps/s with local worker processes vs Ray actors (needs mat-sdk[ray]).
+
+    \b
+    Example (a quick check):
+      mat bench scaling --updates 3 --set ppo_epochs=1
+    """
+    from mat_sdk.bench.scaling import main as run
+
+    run(env_id, updates=updates, **parse_settings(settings))
+
+
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--device", default="cpu", show_default=True)
 @click.option(

@@ -1,0 +1,54 @@
+"""Rollout scaling: env-steps/s of whole updates with local or Ray rollout workers
+(`mat bench scaling`; issue 8).
+
+Each variant trains a fresh `Trainer` for a few updates of the chosen recipe and reports the
+mean over the updates after the first (which includes start-up): env-steps/s, and the
+rollout and update seconds per update. Variants run one after another, not interleaved
+(each needs the whole machine), so compare them within one run only.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mat_sdk.bench import machine, print_table
+from mat_sdk.trainer import Trainer
+
+VARIANTS = {
+    "local, in-process envs": {"workers": 0},
+    "local, 1 worker process": {"workers": 1},
+    "local, 2 worker processes": {"workers": 2},
+    "Ray, 1 actor": {"workers": 1, "ray": "local"},
+    "Ray, 2 actors": {"workers": 2, "ray": "local"},
+}
+
+
+def main(env_id: str = "cheetah-6x1", updates: int = 3, **recipe) -> None:
+    rows = []
+    for label, options in VARIANTS.items():
+        times: list[dict] = []
+        with Trainer(env_id, "mat", **options, **recipe) as trainer:
+            per_update = trainer.config.num_envs * trainer.config.rollout_length
+            start = time.perf_counter()
+            trainer.learn(per_update * updates, progress_bar=False, callback=_append_to(times))
+            total = time.perf_counter() - start
+        steady = times[1:] or times
+        first = total - sum(m["rollout_s"] + m["update_s"] for m in steady)
+        rollout = np.mean([m["rollout_s"] for m in steady])
+        update = np.mean([m["update_s"] for m in steady])
+        rows.append(
+            {
+                "rollouts": label,
+                "env-steps/s": f"{per_update / (rollout + update):,.0f}",
+                "rollout s/update": f"{rollout:.2f}",
+                "update s/update": f"{update:.2f}",
+                "first update incl. start-up (s)": f"{first:.1f}",
+            }
+        )
+    print_table(rows, f"{env_id}, {updates} updates per variant — {machine()}")
+
+
+def _append_to(metrics: list[dict]):
+    return lambda trainer, m: metrics.append(m)
