@@ -48,7 +48,7 @@ class Policy:
         sessions: dict[int | None, ort.InferenceSession],
     ):
         self.path, self.manifest = path, manifest
-        self._session, self._specialised = sessions[None], sessions
+        self._sessions = sessions  # by the agent count a graph is unrolled for; None: any
         action = manifest["action"]
         self.algo: str = manifest["algo"]
         self.env_id: str | None = manifest.get("env_id")
@@ -65,7 +65,7 @@ class Policy:
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 1, providers: list[str] | None = None) -> Policy:
-        """Verify the bundle (format, version, sha256 of the graph) and build the session.
+        """Verify the bundle (format, version, sha256 of each graph), then build the sessions.
 
         `threads`: ONNX Runtime intra-op threads; 1 is fastest for MAT's small kernels and
         keeps the controller's other cores free. `providers`: ONNX Runtime execution providers
@@ -127,7 +127,7 @@ class Policy:
             feed["available"] = self._check_available(available, batch, n)
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
-        session = self._specialised.get(n, self._session)
+        session = self._sessions.get(n) or self._sessions[None]
         outputs = session.run(self._outputs, feed)
         actions = outputs[0]
         if self.discrete:
