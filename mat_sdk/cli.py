@@ -379,7 +379,8 @@ def export_command(checkpoint: str, out_dir: str | None, force: bool) -> None:
     manifest = export(checkpoint, target, force=force)
     worst = max(manifest["parity"]["max_abs_diff"].values())
     counts = ", ".join(manifest["parity"]["max_abs_diff"])
-    click.echo(f"{target}: {manifest['algo']} ({manifest['kind']}), opset {manifest['opset']}")
+    graphs = ", ".join(f"{name} (opset {g['opset']})" for name, g in manifest["graphs"].items())
+    click.echo(f"{target}: {manifest['algo']} ({manifest['kind']}): {graphs}")
     click.echo(f"ORT vs torch max abs diff {worst:.2e} over agent counts {counts}")
 
 
