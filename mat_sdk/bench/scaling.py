@@ -18,10 +18,12 @@ from mat_sdk.trainer import Trainer
 
 VARIANTS = {
     "local, in-process envs": {"workers": 0},
+    "local, in-process envs, ONNX acting": {"workers": 0, "rollout_backend": "onnx"},
     "local, 1 worker process": {"workers": 1},
     "local, 2 worker processes": {"workers": 2},
     "Ray, 1 actor": {"workers": 1, "ray": "local"},
     "Ray, 2 actors": {"workers": 2, "ray": "local"},
+    "Ray, 2 actors, ONNX acting": {"workers": 2, "ray": "local", "rollout_backend": "onnx"},
 }
 
 

@@ -1,0 +1,36 @@
+"""Rollouts acting through ONNX Runtime: the same distribution as torch, and it learns."""
+
+import numpy as np
+import pytest
+import torch
+from helpers import GAME, trained_like
+
+from mat_sdk.onnx_actor import OnnxActor
+from mat_sdk.trainer import Trainer
+
+
+@pytest.mark.parametrize("env_id", ["hopper-2x2", "coordination-3"])
+def test_onnx_actor_log_probs_and_values_match_torch(env_id):
+    with Trainer(env_id, "mat", num_envs=2, rollout_length=2, n_block=2, n_head=2) as trainer:
+        policy = trained_like(trainer.policy).eval()
+    actor = OnnxActor(policy)
+    actor.refresh()
+    obs = torch.randn(8, 5, policy.cfg.obs_dim)
+    actions, log_probs, values = actor.act(obs, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        expected_log_probs, _, expected_values = policy.evaluate(obs, actions)
+    assert torch.allclose(log_probs, expected_log_probs, atol=1e-4)
+    assert torch.allclose(values, expected_values, atol=1e-5)
+    deterministic, _, _ = actor.act(obs, None, deterministic=True)
+    with torch.no_grad():
+        torch_deterministic, _, _ = policy.act(obs, deterministic=True)
+    assert torch.allclose(deterministic, torch_deterministic, atol=1e-5)
+
+
+def test_onnx_rollouts_learn_the_coordination_game():
+    returns = []
+    with Trainer("coordination-3", "mat", rollout_backend="onnx", **GAME) as trainer:
+        trainer.learn(
+            16_000, progress_bar=False, callback=lambda t, m: returns.append(m["return_mean"])
+        )
+    assert np.mean(returns[-5:]) >= 0.9, returns  # random play: 0.07
