@@ -4,13 +4,16 @@
     actions, mean + std (continuous) or logits (discrete), values
 
 Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not arithmetic
-(~0.5-1 µs per kernel, ~50 kernels per agent in the torch-exported step graph). Writing the
-network directly in ONNX lets us lay it out for that regime: each linear layer is one `Gemm`
-on 2-D per-agent tensors, attention is ONNX's `Attention` op (opset 24) with its KV cache,
-fused q/k/v projections, everything that does not depend on the actions already chosen (the
-second attention's queries, the sampling noise times std, the availability mask) is computed
-for all agents at once before the agent loop, and the loop body takes each agent's share of
-them with one `Gather`. Only standard ONNX ops; ONNX Runtime fuses further at load.
+(~0.5-1 µs per ONNX Runtime kernel; the torch-exported step graph ran ~89 kernels per agent).
+Written directly in ONNX it is laid out for that regime: each linear layer is one `Gemm` on
+2-D per-agent tensors; q/k/v projections are fused; attention scores the cached action
+stream itself (the query pulled through the key projection, the value projection folded into
+the output one — see `_stream_queries`) with ONNX's `Attention` op (opset 24); everything
+that does not depend on the actions already chosen (the second attention's queries, noise
+times std, the availability mask) is computed for all agents before the agent steps, which
+take their share with one `Gather`. The steps run in an ONNX `Loop` (any agent count) or are
+written out for one count (`agents=N`: `decode_nN.onnx`, no loop machinery). Only standard
+ONNX ops; ONNX Runtime fuses further at load. BENCHMARKS.md has the measurements.
 
 The exporter checks this graph against the torch policy on several agent counts and refuses
 the bundle when they differ, so it cannot drift from `mat_sdk.model`.
