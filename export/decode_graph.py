@@ -23,15 +23,13 @@ from __future__ import annotations
 
 import numpy as np
 import onnx
-import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from mat_sdk.model import MAPPO, MAT, Policy
+from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, Policy
 
 OPSET = 24  # `Attention` with a KV cache
 FLOAT, INT64 = TensorProto.FLOAT, TensorProto.INT64
 LN_EPS = 1e-5  # torch.nn.LayerNorm's default
-MASKED_LOGIT = -1e10  # mat_sdk.model.UNAVAILABLE_LOGIT
 
 
 class GraphBuilder:
@@ -129,19 +127,20 @@ def build_decode(
     if obs_clip is not None:
         x = g.op("Clip", x, g.const(-obs_clip), g.const(obs_clip))
     value_fold = {"scale": value_std, "shift": value_mean}  # ValueNorm's de-normalisation
+    std = None if discrete else policy.std().detach().cpu().numpy()
+    shift = _noise_shift(g, std)
     if isinstance(policy, MAT):
         rep, values = _encoder(g, x, cfg, value_fold)
-        params = _decoder(g, rep, cfg, discrete, agents)
+        params = _decoder(g, rep, cfg, shift, agents)
     else:
-        params = _mlp(g, x, "mlp")
-        values = _mappo_values(g, x, cfg, value_fold) if isinstance(policy, MAPPO) else None
-        if values is None:
+        if isinstance(policy, MAPPO):
+            values = _mappo_values(g, x, cfg, value_fold)
+        else:
             values = _encoder(g, x, cfg, value_fold)[1]
-        params = _decentralised_sample(g, params, discrete)
+        params = _decentralised_sample(g, _mlp(g, x, "mlp"), shift, discrete)
     head = ["logits"] if discrete else ["mean", "std"]
     g.op("Identity", values, outputs=["values"])
     if not discrete:
-        std = torch.sigmoid(policy.log_std.detach()).numpy() * 0.5
         g.op("Expand", g.const(std, "std"), g.op("Shape", params["mean"]), outputs=["std"])
     for name in ["actions", *(h for h in head if h != "std")]:
         g.op("Identity", params[name], outputs=[name])
@@ -191,36 +190,39 @@ def _mappo_values(g: GraphBuilder, x: str, cfg, value_fold: dict) -> str:
 
 
 def _mask(g: GraphBuilder, logits: str) -> str:
-    """Unavailable choices get MASKED_LOGIT, exactly as the torch policy's masked_fill."""
+    """Unavailable choices get UNAVAILABLE_LOGIT, exactly as the torch policy's masked_fill."""
     unavailable = g.op("Equal", "available", g.const(0.0, "zero"))
-    return g.op("Where", unavailable, g.const(MASKED_LOGIT, "masked"), logits)
+    return g.op("Where", unavailable, g.const(UNAVAILABLE_LOGIT, "masked"), logits)
 
 
-def _decentralised_sample(g: GraphBuilder, params: str, discrete: bool) -> dict[str, str]:
+def _noise_shift(g: GraphBuilder, std: np.ndarray | None) -> str:
+    """What sampling adds to the action parameters, for all agents at once [B, n, A]:
+    continuous `std * noise` (actions = mean + it); discrete the mask plus the Gumbel noise
+    (choice = argmax(logits + it)). Zero noise leaves the deterministic action."""
+    if std is None:
+        return g.op("Add", _mask(g, g.const(0.0, "zero")), "noise")
+    return g.op("Mul", "noise", g.const(std, "std"))
+
+
+def _decentralised_sample(g: GraphBuilder, params: str, shift: str, discrete: bool):
     if discrete:
-        logits = _mask(g, params)
-        index = g.op("ArgMax", g.op("Add", logits, "noise"), axis=-1, keepdims=1)
-        return {"actions": g.op("Cast", index, to=FLOAT), "logits": logits}
-    std = g.weights["log_std"]
-    scaled = g.op("Mul", "noise", g.const(1.0 / (1.0 + np.exp(-std)) * 0.5, "std"))
-    return {"actions": g.op("Add", params, scaled), "mean": params}
+        index = g.op("ArgMax", g.op("Add", params, shift), axis=-1, keepdims=1)
+        return {"actions": g.op("Cast", index, to=FLOAT), "logits": _mask(g, params)}
+    return {"actions": g.op("Add", params, shift), "mean": params}
 
 
-def _decoder(g: GraphBuilder, rep: str, cfg, discrete: bool, agents: int | None):
+def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
     """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
     agents, or (`agents` given) the steps written out one after another for that count."""
     heads, width = cfg.n_head, cfg.n_embd
+    discrete = cfg.action_type == "discrete"
     w = g.weights
     # ---- before the agent steps, for all agents at once: [B, n, ...] tensors they slice
     per_agent = {"rep": rep}
     for b in range(cfg.n_block):  # the second attention's queries come from rep alone
         weight, bias = _stream_queries(w, f"decoder.blocks.{b}.attn2", heads)
         per_agent[f"query2.{b}"] = g.dense(rep, weight, bias, False, f"query2.{b}")
-    if discrete:  # argmax(logits + mask + gumbel): mask and noise added in one go per agent
-        per_agent["shift"] = g.op("Add", _mask(g, g.const(0.0, "zero")), "noise")
-    else:  # mean + std * noise
-        std = 1.0 / (1.0 + np.exp(-w["log_std"])) * 0.5
-        per_agent["shift"] = g.op("Mul", "noise", g.const(std, "std"))
+    per_agent["shift"] = shift
     packed = g.op("Concat", *per_agent.values(), axis=-1)
     embed = w["decoder.action_encoder.0.weight"].T  # [token, C]
     batch = g.op("Shape", rep, end=1)
