@@ -220,17 +220,24 @@ class ActionDistribution:
             ), dist.entropy().unsqueeze(-1)
         return dist.log_prob(actions), dist.entropy()
 
+    def noise(self, shape, generator: torch.Generator | None, device=None) -> Tensor:
+        """Sampling noise: Gumbel (discrete: argmax(logits + it)) or standard normal
+        (continuous: mean + std * it)."""
+        if self.discrete:
+            uniform = torch.rand(shape, generator=generator, device=device)
+            return -torch.log(-torch.log(uniform.clamp_min(1e-20)))
+        return torch.randn(shape, generator=generator, device=device)
+
     def sample(self, dist, deterministic: bool, generator: torch.Generator | None) -> Tensor:
         if self.discrete:
             # Choices travel as float indices, so one buffer serves both action types.
             if deterministic:
                 return dist.logits.argmax(-1, keepdim=True).float()
-            uniform = torch.rand(dist.logits.shape, generator=generator, device=dist.logits.device)
-            gumbel = -torch.log(-torch.log(uniform.clamp_min(1e-20)))
+            gumbel = self.noise(dist.logits.shape, generator, dist.logits.device)
             return (dist.logits + gumbel).argmax(-1, keepdim=True).float()
         if deterministic:
             return dist.mean
-        noise = torch.randn(dist.mean.shape, generator=generator, device=dist.mean.device)
+        noise = self.noise(dist.mean.shape, generator, dist.mean.device)
         return dist.mean + dist.stddev * noise
 
 

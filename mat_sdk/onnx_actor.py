@@ -5,7 +5,8 @@ Batched acting is where ONNX Runtime beats eager torch most (BENCHMARKS.md, B = 
 from the current weights (`mat_export.decode_graph`, no `torch.onnx` tracing: ~0.1 s), with
 identity normalisers, because the trainer feeds normalised observations and stores
 normalised values. Noise comes from the trainer's torch generator, so a seed still fixes the
-run; the log-probs of the sampled actions are computed here from the returned distribution.
+run; the log-probs of the sampled actions come from the returned distribution through the
+policy's own `ActionDistribution`.
 """
 
 from __future__ import annotations
@@ -41,28 +42,14 @@ class OnnxActor:
     def act(self, obs: torch.Tensor, generator: torch.Generator, deterministic: bool = False):
         """Like `Policy.act` on normalised obs [B, n, D]: actions, log-probs, values."""
         shape = (*obs.shape[:2], self.policy.cfg.action_dim)
-        if deterministic:
-            noise = torch.zeros(shape)
-        elif self.discrete:
-            uniform = torch.rand(shape, generator=generator).clamp_min(1e-20)
-            noise = -torch.log(-torch.log(uniform))
-        else:
-            noise = torch.randn(shape, generator=generator)
+        noise = torch.zeros(shape) if deterministic else self.policy.dist.noise(shape, generator)
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}
+        head = ["logits"] if self.discrete else ["mean", "std"]
         if self.discrete:
             feed["available"] = np.ones(shape, np.float32)
-            actions, logits, values = self.session.run(["actions", "logits", "values"], feed)
-            log_probs = torch.log_softmax(torch.from_numpy(logits), -1)
-            log_prob = log_probs.gather(-1, torch.from_numpy(actions).long())
-        else:
-            actions, mean, std, values = self.session.run(
-                ["actions", "mean", "std", "values"], feed
-            )
-            dist = torch.distributions.Normal(torch.from_numpy(mean), torch.from_numpy(std))
-            log_prob = dist.log_prob(torch.from_numpy(actions))
+        outputs = self.session.run(["actions", *head, "values"], feed)
+        actions, *params, values = (torch.from_numpy(out) for out in outputs)
+        dist = self.policy.dist.make(params[0], params[1] if len(params) > 1 else None, None)
+        log_prob = self.policy.dist.log_prob_entropy(dist, actions)[0]
         device = obs.device
-        return (
-            torch.from_numpy(actions).to(device),
-            log_prob.to(device),
-            torch.from_numpy(values).to(device),
-        )
+        return actions.to(device), log_prob.to(device), values.to(device)
