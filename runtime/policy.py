@@ -35,7 +35,7 @@ from mat_runtime.bundle import read_bundle
 from mat_runtime.errors import InputError
 
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
-_ZERO_NOISE_CACHE = 32  # distinct (B, n) shapes whose zero-noise buffers are kept
+_CONSTANT_CACHE = 32  # read-only filled buffers (zero noise, all-available masks) kept
 
 
 class Policy:
@@ -61,7 +61,7 @@ class Policy:
         self.discrete = self.action_type == "discrete"
         head = ["logits"] if self.discrete else ["mean", "std"]
         self._outputs = ["actions", *head, "values"]
-        self._zero_noise: dict[tuple[int, int], np.ndarray] = {}
+        self._constants: dict[tuple[int, int, float], np.ndarray] = {}
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 1, providers: list[str] | None = None) -> Policy:
@@ -187,7 +187,7 @@ class Policy:
     def _check_available(self, available, batch: int, n: int) -> np.ndarray:
         shape = (batch, n, self.action_size)
         if available is None:
-            return np.ones(shape, np.float32)
+            return self._filled(batch, n, 1.0)
         mask = np.asarray(available)
         if mask.shape not in (shape, shape[1:]) or (mask.shape == shape[1:] and batch != 1):
             raise InputError(
@@ -200,20 +200,25 @@ class Policy:
             raise InputError(f"agent {agent} has no available action; at least one must be allowed")
         return mask.astype(np.float32)
 
+    def _filled(self, batch: int, n: int, value: float) -> np.ndarray:
+        """A read-only [batch, n, action_size] buffer of `value`, made once per shape."""
+        key = (batch, n, value)
+        buffer = self._constants.get(key)
+        if buffer is None:
+            if len(self._constants) >= _CONSTANT_CACHE:
+                self._constants.clear()
+            buffer = np.full((batch, n, self.action_size), value, np.float32)
+            buffer.flags.writeable = False
+            self._constants[key] = buffer
+        return buffer
+
     def _noise(self, batch: int, n: int, deterministic: bool, seed) -> np.ndarray:
         if deterministic:
             if seed is not None:
                 raise InputError(
                     "seed given for a deterministic call; pass deterministic=False to sample"
                 )
-            zeros = self._zero_noise.get((batch, n))
-            if zeros is None:
-                if len(self._zero_noise) >= _ZERO_NOISE_CACHE:
-                    self._zero_noise.clear()
-                zeros = np.zeros((batch, n, self.action_size), np.float32)
-                zeros.flags.writeable = False
-                self._zero_noise[(batch, n)] = zeros
-            return zeros
+            return self._filled(batch, n, 0.0)
         if seed is None:
             raise InputError(
                 "sampling needs seed=: an int, or a numpy.random.Generator kept between calls"
