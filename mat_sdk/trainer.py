@@ -536,8 +536,8 @@ class Trainer:
         train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), **options)
         if lr is not None:
             train["lr"] = lr
-        algo, env = train.pop("algo"), env or train.pop("env")
-        train.pop("env", None)
+        algo, trained_env = train.pop("algo"), train.pop("env")
+        env = env or trained_env
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
             pretrained = build_policy(ModelConfig(**model))
