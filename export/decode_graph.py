@@ -5,21 +5,24 @@
 
 Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not arithmetic
 (~0.5-1 µs per ONNX Runtime kernel; the torch-exported step graph ran ~89 kernels per agent).
-Written directly in ONNX it is laid out for that regime: each linear layer is one `Gemm` on
-2-D per-agent tensors; q/k/v projections are fused; attention scores the cached action
-stream itself (the query pulled through the key projection, the value projection folded into
-the output one — see `_stream_queries`) with ONNX's `Attention` op (opset 24); everything
-that does not depend on the actions already chosen (the second attention's queries, noise
-times std, the availability mask) is computed for all agents before the agent steps, which
-take their share with one `Gather`. The steps run in an ONNX `Loop` (any agent count) or are
+Written directly in ONNX it is laid out for that regime: an agent's activations are [B, 1, C],
+the layout in which ONNX Runtime fuses bias + residual + LayerNorm and bias + GELU at load;
+q/k/v projections are fused; attention scores the cached action stream itself (the query
+pulled through the key projection, the value projection folded into the output one — see
+`_stream_queries`) with ONNX's `Attention` op (opset 24); everything that does not depend on
+the actions already chosen (the second attention's queries, noise times std, the mask) is
+computed for all agents before the agent steps, and the agents' action means after them.
+About 20 kernels per agent remain. The steps run in ONNX `Loop`s (any agent count) or are
 written out for one count (`agents=N`: `decode_nN.onnx`, no loop machinery). Only standard
-ONNX ops; ONNX Runtime fuses further at load. BENCHMARKS.md has the measurements.
+ONNX ops. BENCHMARKS.md has the measurements.
 
 The exporter checks this graph against the torch policy on several agent counts and refuses
 the bundle when they differ, so it cannot drift from `mat_sdk.model`.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import onnx
@@ -28,6 +31,7 @@ from onnx import TensorProto, helper, numpy_helper
 from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, Policy
 
 OPSET = 24  # `Attention` with a KV cache
+LOOP_CHUNK = 8  # agent steps per `Loop` iteration in the any-count graph
 FLOAT, INT64 = TensorProto.FLOAT, TensorProto.INT64
 LN_EPS = 1e-5  # torch.nn.LayerNorm's default
 
@@ -64,17 +68,16 @@ class GraphBuilder:
         return names[0] if len(names) == 1 else names
 
     # ---- layers, named after the state-dict prefixes of mat_sdk.model
-    def linear(self, x: str, layer: str, two_d: bool = False, scale=1.0, shift=0.0) -> str:
+    def linear(self, x: str, layer: str, scale=1.0, shift=0.0) -> str:
         """y = x W^T + b (times `scale` plus `shift`, folded into the weights)."""
         weight = self.weights[f"{layer}.weight"].T * scale
         bias = self.weights.get(f"{layer}.bias", np.zeros(weight.shape[1], np.float32))
-        return self.dense(x, weight, bias * scale + shift, two_d, layer)
+        return self.dense(x, weight, bias * scale + shift, layer)
 
-    def dense(self, x: str, weight, bias, two_d: bool, hint: str) -> str:
-        w, b = self.const(weight, hint + ".w"), self.const(bias, hint + ".b")
-        if two_d:
-            return self.op("Gemm", x, w, b)
-        return self.op("Add", self.op("MatMul", x, w), b)
+    def dense(self, x: str, weight, bias, hint: str) -> str:
+        """x @ weight + bias; a `str` bias names a tensor (e.g. a per-agent one) to add."""
+        b = bias if isinstance(bias, str) else self.const(bias, hint + ".b")
+        return self.op("Add", self.op("MatMul", x, self.const(weight, hint + ".w")), b)
 
     def layer_norm(self, x: str, layer: str) -> str:
         scale = self.const(self.weights[f"{layer}.weight"], layer + ".scale")
@@ -84,13 +87,11 @@ class GraphBuilder:
     def gelu(self, x: str) -> str:
         return self.op("Gelu", x)
 
-    def qkv(self, x: str, attn: str, parts: tuple[str, ...], two_d: bool) -> list[str]:
+    def qkv(self, x: str, attn: str, parts: tuple[str, ...]) -> list[str]:
         """The projections in `parts` as one matrix product, split into [B, L, C] tensors."""
         weight = np.concatenate([self.weights[f"{attn}.{p}.weight"].T for p in parts], axis=1)
         bias = np.concatenate([self.weights[f"{attn}.{p}.bias"] for p in parts])
-        fused = self.dense(x, weight, bias, two_d, f"{attn}.{''.join(p[0] for p in parts)}")
-        if two_d:
-            fused = self.op("Unsqueeze", fused, self.const([1], "axis1", np.int64))
+        fused = self.dense(x, weight, bias, f"{attn}.{''.join(p[0] for p in parts)}")
         return self.op("Split", fused, outputs=len(parts), axis=-1, num_outputs=len(parts))
 
 
@@ -158,20 +159,20 @@ def _encoder(g: GraphBuilder, x: str, cfg, value_fold: dict) -> tuple[str, str]:
     x = g.layer_norm(x, "encoder.ln")
     for b in range(cfg.n_block):
         block = f"encoder.blocks.{b}"
-        q, k, v = g.qkv(x, f"{block}.attn", ("query", "key", "value"), two_d=False)
+        q, k, v = g.qkv(x, f"{block}.attn", ("query", "key", "value"))
         attended = g.op("Attention", q, k, v, q_num_heads=cfg.n_head, kv_num_heads=cfg.n_head)
         x = g.layer_norm(g.op("Add", x, g.linear(attended, f"{block}.attn.proj")), f"{block}.ln1")
         x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln2")
     return x, _head(g, x, "encoder.head", **value_fold)
 
 
-def _mlp_block(g: GraphBuilder, x: str, prefix: str, two_d: bool = False) -> str:
-    return g.linear(g.gelu(g.linear(x, f"{prefix}.0", two_d)), f"{prefix}.2", two_d)
+def _mlp_block(g: GraphBuilder, x: str, prefix: str) -> str:
+    return g.linear(g.gelu(g.linear(x, f"{prefix}.0")), f"{prefix}.2")
 
 
-def _head(g: GraphBuilder, x: str, prefix: str, two_d: bool = False, scale=1.0, shift=0.0) -> str:
-    x = g.layer_norm(g.gelu(g.linear(x, f"{prefix}.0", two_d)), f"{prefix}.2")
-    return g.linear(x, f"{prefix}.3", two_d, scale, shift)
+def _head(g: GraphBuilder, x: str, prefix: str, scale=1.0, shift=0.0) -> str:
+    x = g.layer_norm(g.gelu(g.linear(x, f"{prefix}.0")), f"{prefix}.2")
+    return g.linear(x, f"{prefix}.3", scale, shift)
 
 
 def _mlp(g: GraphBuilder, x: str, prefix: str, **value_fold) -> str:
@@ -213,137 +214,207 @@ def _decentralised_sample(g: GraphBuilder, params: str, shift: str, discrete: bo
 
 def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
     """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
-    agents, or (`agents` given) the steps written out one after another for that count."""
-    heads, width = cfg.n_head, cfg.n_embd
+    agents, or (`agents` given) the steps written out one after another for that count.
+
+    The steps are cut to the kernels that depend on the actions already chosen (each costs
+    ~1 µs at B = 1): per-agent tensors stay [B, 1, C], the layout ONNX Runtime fuses bias,
+    residual and LayerNorm in (`SkipLayerNormalization`, `BiasGelu`) and `Attention` takes
+    without reshapes; the next agent's normalised token comes straight from this agent's
+    head (continuous: head, sampling shift and action encoder as one matrix; discrete: a
+    lookup in pre-normalised token rows), and the action means are computed for all agents
+    afterwards.
+    """
     discrete = cfg.action_type == "discrete"
     w = g.weights
     # ---- before the agent steps, for all agents at once: [B, n, ...] tensors they slice
-    per_agent = {"rep": rep}
+    per_agent, widths = {"rep": rep}, {"rep": cfg.n_embd}
     for b in range(cfg.n_block):  # the second attention's queries come from rep alone
-        weight, bias = _stream_queries(w, f"decoder.blocks.{b}.attn2", heads)
-        per_agent[f"query2.{b}"] = g.dense(rep, weight, bias, False, f"query2.{b}")
-    per_agent["shift"] = shift
-    packed = g.op("Concat", *per_agent.values(), axis=-1)
+        weight, bias = _stream_queries(w, f"decoder.blocks.{b}.attn2", cfg.n_head)
+        per_agent[f"query2.{b}"] = g.dense(rep, weight, bias, f"query2.{b}")
+        widths[f"query2.{b}"] = weight.shape[1]
     embed = w["decoder.action_encoder.0.weight"].T  # [token, C]
-    batch = g.op("Shape", rep, end=1)
+    if discrete:
+        per_agent["shift"], widths["shift"] = shift, cfg.action_dim
+    else:  # what the next agent's token adds to hidden @ (head.3 -> action encoder)
+        token_bias = w["decoder.head.3.bias"] @ embed + w["decoder.action_encoder.0.bias"]
+        per_agent["token"] = g.dense(shift, embed, token_bias, "token")
+        widths["token"] = cfg.n_embd
     start = embed[0] if discrete else w["decoder.action_encoder.0.bias"]  # agent 0's token
-    width_1d = g.const([width], "width", np.int64)
-    first = g.op("Expand", g.const(start[None], "start"), g.op("Concat", batch, width_1d, axis=0))
-    empty = g.op(
-        "ConstantOfShape",
-        g.op("Concat", batch, g.const([1, 0, width], "cache", np.int64), axis=0),
-        value=numpy_helper.from_array(np.zeros(1, np.float32)),
-    )
+    batch = g.op("Shape", rep, end=1)
+    row = g.op("Concat", batch, g.const([1, cfg.n_embd], "row", np.int64), axis=0)
+    first = g.op("Expand", g.const(_token(w, start[None, None]), "first"), row)
+    no_agents = g.op("Concat", batch, g.const([1, 0, cfg.n_embd], "cache", np.int64), axis=0)
+    zero = numpy_helper.from_array(np.zeros(1, np.float32))
+    empty = g.op("ConstantOfShape", no_agents, value=zero)
     caches = [
         f"{b}.{attn}.{kind}"
         for b in range(cfg.n_block)
         for attn in ("attn1", "attn2")
         for kind in ("key", "value")
     ]
-    step = _AgentStep(cfg, discrete, packed, list(per_agent), embed)
+    step = _AgentStep(cfg, discrete, embed)
     if agents is None:
-        chosen, params = _loop(g, step, first, [empty] * len(caches), caches)
+        outputs = _loop(g, step, per_agent, widths, first, [empty] * len(caches), caches)
     else:
-        chosen, params = _unrolled(g, step, first, [empty] * len(caches), agents)
+        outputs = _unrolled(g, step, per_agent, first, [empty] * len(caches), agents)
     if discrete:
-        actions = g.op("Unsqueeze", g.op("Cast", chosen, to=FLOAT), g.const([2], "axis2", np.int64))
-        return {"actions": actions, "logits": _mask(g, params)}
-    return {"actions": chosen, "mean": params}
+        actions = g.op(
+            "Unsqueeze", g.op("Cast", outputs["chosen"], to=FLOAT), g.const([2], "axis2", np.int64)
+        )
+        return {"actions": actions, "logits": _mask(g, outputs["logits"])}
+    mean = g.linear(outputs["hidden"], "decoder.head.3")
+    return {"actions": g.op("Add", mean, shift), "mean": mean}
+
+
+def _token(w: dict, embedded: np.ndarray) -> np.ndarray:
+    """What the decoder makes of an embedded action token: LayerNorm(GELU(embedded))."""
+    x = embedded.astype(np.float64)
+    x = 0.5 * x * (1.0 + np.vectorize(math.erf)(x / math.sqrt(2.0)))
+    x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + LN_EPS)
+    return (x * w["decoder.ln.weight"] + w["decoder.ln.bias"]).astype(np.float32)
 
 
 class _AgentStep:
-    """One agent's decoder step on 2-D [B, C] activations; writes its nodes into a builder."""
+    """One agent's decoder step on [B, 1, C] activations; writes its nodes into a builder."""
 
-    def __init__(self, cfg, discrete: bool, packed: str, parts: list[str], embed: np.ndarray):
-        self.cfg, self.discrete, self.packed, self.parts, self.embed = (
-            cfg, discrete, packed, parts, embed,
-        )  # fmt: skip
+    def __init__(self, cfg, discrete: bool, embed: np.ndarray):
+        self.cfg, self.discrete, self.embed = cfg, discrete, embed
 
-    def __call__(self, g: GraphBuilder, index: str, embedded: str, past: list[str]):
-        """-> (next agent's embedded token, present caches, chosen action, action params)."""
-        cfg, w, heads, width = self.cfg, g.weights, self.cfg.n_head, self.cfg.n_embd
-        mine = g.op("Gather", self.packed, index, axis=1)  # [B, K]: this agent's share
-        sizes = [width] + [heads * width] * cfg.n_block + [cfg.action_dim]
-        sizes = g.const(sizes, "sizes", np.int64)
-        mine = dict(
-            zip(
-                self.parts,
-                g.op("Split", mine, sizes, axis=-1, outputs=len(self.parts)),
-                strict=True,
-            )
-        )
-        x = g.layer_norm(g.gelu(embedded), "decoder.ln")
+    def outputs(self) -> dict[str, int]:
+        """What every step emits for the whole team: name -> width (0: one choice per row)."""
+        if self.discrete:
+            return {"chosen": 0, "logits": self.cfg.action_dim}
+        return {"hidden": self.cfg.n_embd}
+
+    def __call__(self, g: GraphBuilder, mine: dict, x: str, past: list[str], last: bool = False):
+        """`mine`: this agent's [B, 1, ..] slices of the per-agent tensors; `x`: its normalised
+        token. -> (the next agent's token, None when `last`; present caches; `outputs()`)."""
+        cfg, w, heads = self.cfg, g.weights, self.cfg.n_head
         present: list[str] = []
         for b in range(cfg.n_block):
             block, cache = f"decoder.blocks.{b}", past[4 * b : 4 * b + 4]
             weight, bias = _stream_queries(w, f"{block}.attn1", heads)
-            queries = g.dense(x, weight, bias, True, f"{block}.attn1.queries")
+            queries = g.dense(x, weight, bias, f"{block}.attn1.queries")
             attended = _stream_attention(g, queries, x, f"{block}.attn1", cache[:2], heads, present)
             x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
             query = mine[f"query2.{b}"]
             attended = _stream_attention(g, query, x, f"{block}.attn2", cache[2:], heads, present)
             x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
-            x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp", True)), f"{block}.ln3")
-        params = _head(g, x, "decoder.head", two_d=True)
-        if self.discrete:
-            chosen = g.op("ArgMax", g.op("Add", params, mine["shift"]), axis=-1, keepdims=0)
-            embedded = g.op("Gather", g.const(self.embed[1:], "choices"), chosen, axis=0)
-        else:
-            chosen = g.op("Add", params, mine["shift"])
-            bias = w["decoder.action_encoder.0.bias"]
-            embedded = g.dense(chosen, self.embed, bias, True, "decoder.action_encoder")
-        return embedded, present, chosen, params
+            x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
+        hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
+        if not self.discrete:  # next token from (hidden @ head.3 + shift) @ action encoder
+            if last:
+                return None, present, {"hidden": hidden}
+            weight = w["decoder.head.3.weight"].T @ self.embed
+            token = g.dense(hidden, weight, mine["token"], "next_token")
+            return g.layer_norm(g.gelu(token), "decoder.ln"), present, {"hidden": hidden}
+        logits = g.linear(hidden, "decoder.head.3")
+        chosen = g.op("ArgMax", g.op("Add", logits, mine["shift"]), axis=-1, keepdims=0)
+        tokens = g.const(_token(w, self.embed[1:]), "tokens")
+        token = None if last else g.op("Gather", tokens, chosen, axis=0)
+        return token, present, {"chosen": chosen, "logits": logits}
 
 
-def _loop(g: GraphBuilder, step: _AgentStep, first: str, empty: list[str], caches: list[str]):
-    """The agent steps as the body of an ONNX `Loop`: any agent count. -> [B, n, ...] outputs."""
-    body = GraphBuilder(g.weights, prefix="agent/")
-    body.constants = g.constants  # the body reads the weights from the main graph (outer scope)
-    past = [f"past.{c}" for c in caches]
-    embedded, present, chosen, params = step(body, "i", "embedded", past)
-    body.op("Identity", "cond", outputs=["cond_out"])
-    cache_shape = ["batch", 1, "past", step.cfg.n_embd]
-    act = step.cfg.action_dim
-    body_inputs = [
-        helper.make_tensor_value_info("i", INT64, []),
-        helper.make_tensor_value_info("cond", TensorProto.BOOL, []),
-        _value("embedded", ["batch", step.cfg.n_embd]),
-        *(_value(p, cache_shape) for p in past),
-    ]
-    chosen_info = (
-        helper.make_tensor_value_info(chosen, INT64, ["batch"])
-        if step.discrete
-        else _value(chosen, ["batch", act])
-    )
-    body_outputs = [
-        helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
-        _value(embedded, ["batch", step.cfg.n_embd]),
-        *(_value(p, cache_shape) for p in present),
-        chosen_info,
-        _value(params, ["batch", act]),
-    ]
-    loop_body = helper.make_graph(body.nodes, "agent_step", body_inputs, body_outputs)
-    g.initializers += body.initializers
-    agents = g.op("Squeeze", g.op("Shape", "obs", start=1, end=2))
+def _loop(g: GraphBuilder, step: _AgentStep, per_agent: dict, widths, first: str, empty, caches):
+    """The agent steps for any agent count n, in two ONNX `Loop`s: single steps for the first
+    r = (n - 1) % LOOP_CHUNK + 1 agents, then bodies of LOOP_CHUNK steps written out (a loop
+    iteration costs ~5 µs at B = 1, as much as several kernels). -> [B, n, ..] outputs."""
+    packed = g.op("Concat", *per_agent.values(), axis=-1)
+    agents = g.op("Shape", "obs", start=1, end=2)
+    one, chunk = g.const([1], "one", np.int64), g.const([LOOP_CHUNK], "chunk", np.int64)
+    singles = g.op("Add", g.op("Mod", g.op("Sub", agents, one), chunk), one)
+    chunks = g.op("Div", g.op("Sub", agents, singles), chunk)
     carried = [first, *empty]
-    *_, chosen, params = g.op(
-        "Loop", agents, g.const(True, "true", np.bool_), *carried,
-        outputs=len(carried) + 2, body=loop_body,
+    runs = []
+    for count, trips, start in (
+        (1, singles, g.const([0], "zero", np.int64)),
+        (LOOP_CHUNK, chunks, singles),
+    ):
+        first_agents = g.op("Add", start, g.const(np.arange(count), "steps", np.int64))
+        carried, outputs = _loop_run(
+            g, step, packed, widths, carried, caches, count, trips, first_agents
+        )
+        runs.append(outputs)
+    return {name: g.op("Concat", *(run[name] for run in runs), axis=1) for name in runs[0]}
+
+
+def _loop_run(g: GraphBuilder, step, packed, widths, carried, caches, count, trips, first_agents):
+    """One `Loop` whose body runs `count` agent steps; iteration i serves the agents
+    `first_agents + i * count`. -> (final carried values, {name: [B, trips * count, ..]})."""
+    body = GraphBuilder(g.weights, prefix=f"steps{count}/")
+    i, cond, x = (f"steps{count}/{name}" for name in ("i", "cond", "x"))
+    past = [f"steps{count}/past.{c}" for c in caches]
+    index = body.op("Add", body.op("Mul", i, body.const(count, "count", np.int64)), first_agents)
+    mine = body.op("Gather", packed, index, axis=1)  # [B, count, all per-agent widths]
+    sizes = body.const(list(widths.values()), "sizes", np.int64)
+    parts = body.op("Split", mine, sizes, axis=-1, outputs=len(widths))
+    slices = {name: _split(body, part, count) for name, part in zip(widths, parts, strict=True)}
+    token, present, outputs = _steps(body, step, slices, x, past, count)
+    width = step.cfg.n_embd
+    cache_shape = ["batch", 1, "past", width]
+    scanned = [
+        helper.make_tensor_value_info(outputs[name], INT64, ["batch", count])
+        if size == 0
+        else _value(outputs[name], ["batch", count, size])
+        for name, size in step.outputs().items()
+    ]
+    loop_body = helper.make_graph(
+        body.nodes,
+        f"steps{count}",
+        [
+            helper.make_tensor_value_info(i, INT64, []),
+            helper.make_tensor_value_info(cond, TensorProto.BOOL, []),
+            _value(x, ["batch", 1, width]),
+            *(_value(p, cache_shape) for p in past),
+        ],
+        [
+            helper.make_tensor_value_info(cond, TensorProto.BOOL, []),  # passed through
+            _value(token, ["batch", 1, width]),
+            *(_value(p, cache_shape) for p in present),
+            *scanned,
+        ],
+        body.initializers,
+    )
+    results = g.op(
+        "Loop", g.op("Squeeze", trips), g.const(True, "true", np.bool_), *carried,
+        outputs=len(carried) + len(scanned), body=loop_body,
     )  # fmt: skip
-    params = g.op("Transpose", params, perm=[1, 0, 2])  # [n, B, A] -> [B, n, A]
-    chosen = g.op("Transpose", chosen, perm=[1, 0] if step.discrete else [1, 0, 2])
-    return chosen, params
+    batch = g.op("Shape", "obs", end=1)
+    stacked = {}
+    for (name, size), tensor in zip(step.outputs().items(), results[len(carried) :], strict=True):
+        rest = [-1] + [size] * bool(size)  # [trips, B, count, ..] -> [B, trips * count, ..]
+        shape = g.op("Concat", batch, g.const(rest, "rest", np.int64), axis=0)
+        perm = [1, 0, 2] + [3] * bool(size)
+        stacked[name] = g.op("Reshape", g.op("Transpose", tensor, perm=perm), shape)
+    return results[: len(carried)], stacked
 
 
-def _unrolled(g: GraphBuilder, step: _AgentStep, first: str, past: list[str], agents: int):
+def _split(g: GraphBuilder, tensor: str, count: int) -> list[str]:
+    """[B, count, ..] -> `count` tensors [B, 1, ..], one per agent."""
+    return (
+        [tensor] if count == 1 else g.op("Split", tensor, axis=1, num_outputs=count, outputs=count)
+    )
+
+
+def _steps(g: GraphBuilder, step: _AgentStep, slices: dict, x: str, past, count: int, end=False):
+    """`count` consecutive agent steps; `slices[name][j]` is the j-th agent's share. `end`: the
+    last of them is the team's last agent. -> (next token, caches, {name: [B, count, ..]})."""
+    collected = {name: [] for name in step.outputs()}
+    for j in range(count):
+        mine = {name: parts[j] for name, parts in slices.items()}
+        x, past, outputs = step(g, mine, x, past, last=end and j == count - 1)
+        for name, tensor in outputs.items():
+            collected[name].append(tensor)
+    concat = {
+        n: ts[0] if count == 1 else g.op("Concat", *ts, axis=1) for n, ts in collected.items()
+    }
+    return x, past, concat
+
+
+def _unrolled(g: GraphBuilder, step: _AgentStep, per_agent: dict, first: str, past, agents: int):
     """The agent steps written out for exactly `agents` agents: no loop machinery at all."""
-    embedded, chosen, params = first, [], []
-    axis1 = g.const([1], "axis1", np.int64)
-    for i in range(agents):
-        embedded, past, choice, param = step(g, g.const(i, "agent", np.int64), embedded, past)
-        chosen.append(g.op("Unsqueeze", choice, axis1))
-        params.append(g.op("Unsqueeze", param, axis1))
-    return g.op("Concat", *chosen, axis=1), g.op("Concat", *params, axis=1)
+    slices = {name: _split(g, tensor, agents) for name, tensor in per_agent.items()}
+    return _steps(g, step, slices, first, past, agents, end=True)[2]
 
 
 def _stream_queries(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarray]:
@@ -372,17 +443,14 @@ def _stream_output(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarr
 
 
 def _stream_attention(g: GraphBuilder, queries, stream, attn, past: list[str], heads, present):
-    """One agent's stream queries [B, H*C] attend over the cached stream plus its own entry
-    `stream` [B, C]: ONNX `Attention` with H query heads sharing one key/value head of width C
-    (the stream serves as both; scale already folded into the queries). Appends the caches."""
-    width = g.weights[f"{attn}.proj.bias"].shape[0]
-    queries = g.op("Reshape", queries, g.const([0, heads, 1, width], "heads", np.int64))
-    entry = g.op("Reshape", stream, g.const([0, 1, 1, width], "entry", np.int64))
+    """One agent's stream queries [B, 1, H*C] attend over the cached stream plus its own entry
+    `stream` [B, 1, C]: ONNX `Attention` with H query heads sharing one key/value head of
+    width C (the stream serves as both; scale already folded into the queries). Appends the
+    caches [B, 1, agents so far, C] to `present`."""
     mixed, *caches = g.op(
-        "Attention", queries, entry, entry, "", *past,
-        outputs=3, scale=1.0,
+        "Attention", queries, stream, stream, "", *past,
+        outputs=3, scale=1.0, q_num_heads=heads, kv_num_heads=1,
     )  # fmt: skip
     present += caches
-    mixed = g.op("Reshape", mixed, g.const([0, heads * width], "flat", np.int64))
     weight, bias = _stream_output(g.weights, attn, heads)
-    return g.dense(mixed, weight, bias, True, f"{attn}.out")
+    return g.dense(mixed, weight, bias, f"{attn}.out")
