@@ -15,6 +15,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from mat_runtime.policy import BATCH_DISABLED_OPTIMIZERS
 from mat_sdk.model import Policy
 
 
@@ -36,7 +37,10 @@ class OnnxActor:
         options.intra_op_num_threads = options.inter_op_num_threads = 1
         options.log_severity_level = 3
         self.session = ort.InferenceSession(
-            graph.SerializeToString(), options, providers=["CPUExecutionProvider"]
+            graph.SerializeToString(),
+            options,
+            providers=["CPUExecutionProvider"],
+            disabled_optimizers=BATCH_DISABLED_OPTIMIZERS,  # rollouts act on num_envs rows
         )
 
     def act(self, obs: torch.Tensor, generator: torch.Generator, deterministic: bool = False):

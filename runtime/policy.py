@@ -38,6 +38,11 @@ from mat_runtime.errors import InputError
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
 _CONSTANT_CACHE = 32  # read-only filled buffers (zero noise, all-available masks) kept
 _BOUND_CACHE = 32  # bound [B, n] shapes kept per thread
+# ONNX Runtime's fused Add + LayerNorm kernel (SkipLayerNormalization) is faster at B = 1
+# (~7 % of a step) but slower with many rows (~28 % at B = 40, this repo's VM), so batches of
+# BATCH_ROWS or more go to sessions built without that fusion.
+BATCH_ROWS = 8
+BATCH_DISABLED_OPTIMIZERS = ["SkipLayerNormFusion"]
 
 
 class Policy:
@@ -47,10 +52,11 @@ class Policy:
         self,
         path: Path,
         manifest: dict[str, Any],
-        sessions: dict[int | None, ort.InferenceSession],
+        sessions: dict[tuple[int | None, bool], ort.InferenceSession],
     ):
         self.path, self.manifest = path, manifest
-        self._sessions = sessions  # by the agent count a graph is unrolled for; None: any
+        # by (the agent count a graph is unrolled for, None: any; batch of >= BATCH_ROWS)
+        self._sessions = sessions
         action = manifest["action"]
         self.algo: str = manifest["algo"]
         self.env_id: str | None = manifest.get("env_id")
@@ -89,10 +95,14 @@ class Policy:
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.log_severity_level = 3  # warnings about unused initializers are not the user's
         sessions = {
-            bundle.manifest["graphs"][name].get("agents"): ort.InferenceSession(
-                data, options, providers=providers
+            (bundle.manifest["graphs"][name].get("agents"), batched): ort.InferenceSession(
+                data,
+                options,
+                providers=providers,
+                disabled_optimizers=BATCH_DISABLED_OPTIMIZERS if batched else None,
             )
             for name, data in bundle.graphs.items()
+            for batched in (False, True)
         }
         return cls(bundle.path, bundle.manifest, sessions)
 
@@ -209,7 +219,8 @@ class Policy:
         if bound is None:
             if len(cache) >= _BOUND_CACHE:
                 cache.clear()
-            session = self._sessions.get(n) or self._sessions[None]
+            batched = batch >= BATCH_ROWS
+            session = self._sessions.get((n, batched)) or self._sessions[(None, batched)]
             per_agent = (batch, n, self.action_size)
             shapes = {
                 "obs": (batch, n, self.obs_dim),
