@@ -22,10 +22,9 @@ the bundle when they differ, so it cannot drift from `mat_sdk.model`.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import onnx
+import torch
 from onnx import TensorProto, helper, numpy_helper
 
 from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, Policy
@@ -132,7 +131,7 @@ def build_decode(
     shift = _noise_shift(g, std)
     if isinstance(policy, MAT):
         rep, values = _encoder(g, x, cfg, value_fold)
-        params = _decoder(g, rep, cfg, shift, agents)
+        params = _decoder(g, rep, cfg, shift, agents, _normalised_tokens(policy))
     else:
         if isinstance(policy, MAPPO):
             values = _mappo_values(g, x, cfg, value_fold)
@@ -212,7 +211,7 @@ def _decentralised_sample(g: GraphBuilder, params: str, shift: str, discrete: bo
     return {"actions": g.op("Add", params, shift), "mean": params}
 
 
-def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
+def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tokens):
     """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
     agents, or (`agents` given) the steps written out one after another for that count.
 
@@ -239,10 +238,9 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
         token_bias = w["decoder.head.3.bias"] @ embed + w["decoder.action_encoder.0.bias"]
         per_agent["token"] = g.dense(shift, embed, token_bias, "token")
         widths["token"] = cfg.n_embd
-    start = embed[0] if discrete else w["decoder.action_encoder.0.bias"]  # agent 0's token
     batch = g.op("Shape", rep, end=1)
     row = g.op("Concat", batch, g.const([1, cfg.n_embd], "row", np.int64), axis=0)
-    first = g.op("Expand", g.const(_token(w, start[None, None]), "first"), row)
+    first = g.op("Expand", g.const(tokens[:1][None], "first"), row)  # agent 0's: the start
     no_agents = g.op("Concat", batch, g.const([1, 0, cfg.n_embd], "cache", np.int64), axis=0)
     zero = numpy_helper.from_array(np.zeros(1, np.float32))
     empty = g.op("ConstantOfShape", no_agents, value=zero)
@@ -252,9 +250,9 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
         for attn in ("attn1", "attn2")
         for kind in ("key", "value")
     ]
-    step = _AgentStep(cfg, discrete, embed)
+    step = _AgentStep(cfg, discrete, embed, tokens[1:])
     if agents is None:
-        outputs = _loop(g, step, per_agent, widths, first, [empty] * len(caches), caches)
+        outputs = _loop(g, step, per_agent, widths, batch, first, [empty] * len(caches), caches)
     else:
         outputs = _unrolled(g, step, per_agent, first, [empty] * len(caches), agents)
     if discrete:
@@ -266,19 +264,26 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None):
     return {"actions": g.op("Add", mean, shift), "mean": mean}
 
 
-def _token(w: dict, embedded: np.ndarray) -> np.ndarray:
-    """What the decoder makes of an embedded action token: LayerNorm(GELU(embedded))."""
-    x = embedded.astype(np.float64)
-    x = 0.5 * x * (1.0 + np.vectorize(math.erf)(x / math.sqrt(2.0)))
-    x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + LN_EPS)
-    return (x * w["decoder.ln.weight"] + w["decoder.ln.bias"]).astype(np.float32)
+def _normalised_tokens(policy: MAT) -> np.ndarray:
+    """What the decoder makes of its action tokens, LayerNorm(action encoder(token)), computed
+    by the model itself: row 0 the start token, then (discrete) every choice's one-hot."""
+    decoder = policy.decoder
+    device = decoder.ln.weight.device
+    if policy.cfg.action_type == "discrete":
+        onehots = torch.eye(decoder.token_dim, device=device)
+    else:  # only the start token (zeros); later tokens depend on the continuous action
+        onehots = torch.zeros(1, decoder.token_dim, device=device)
+    with torch.no_grad():
+        return decoder.ln(decoder.action_encoder(onehots)).cpu().numpy().astype(np.float32)
 
 
 class _AgentStep:
     """One agent's decoder step on [B, 1, C] activations; writes its nodes into a builder."""
 
-    def __init__(self, cfg, discrete: bool, embed: np.ndarray):
-        self.cfg, self.discrete, self.embed = cfg, discrete, embed
+    def __init__(self, cfg, discrete: bool, embed: np.ndarray, choices: np.ndarray):
+        """`embed`: the action encoder's matrix; `choices`: each discrete choice's
+        normalised token (unused for continuous actions)."""
+        self.cfg, self.discrete, self.embed, self.choices = cfg, discrete, embed, choices
 
     def outputs(self) -> dict[str, int]:
         """What every step emits for the whole team: name -> width (0: one choice per row)."""
@@ -310,12 +315,14 @@ class _AgentStep:
             return g.layer_norm(g.gelu(token), "decoder.ln"), present, {"hidden": hidden}
         logits = g.linear(hidden, "decoder.head.3")
         chosen = g.op("ArgMax", g.op("Add", logits, mine["shift"]), axis=-1, keepdims=0)
-        tokens = g.const(_token(w, self.embed[1:]), "tokens")
+        tokens = g.const(self.choices, "tokens")
         token = None if last else g.op("Gather", tokens, chosen, axis=0)
         return token, present, {"chosen": chosen, "logits": logits}
 
 
-def _loop(g: GraphBuilder, step: _AgentStep, per_agent: dict, widths, first: str, empty, caches):
+def _loop(
+    g: GraphBuilder, step: _AgentStep, per_agent: dict, widths, batch: str, first, empty, caches
+):
     """The agent steps for any agent count n, in two ONNX `Loop`s: single steps for the first
     r = (n - 1) % LOOP_CHUNK + 1 agents, then bodies of LOOP_CHUNK steps written out (a loop
     iteration costs ~5 µs at B = 1, as much as several kernels). -> [B, n, ..] outputs."""
@@ -332,13 +339,15 @@ def _loop(g: GraphBuilder, step: _AgentStep, per_agent: dict, widths, first: str
     ):
         first_agents = g.op("Add", start, g.const(np.arange(count), "steps", np.int64))
         carried, outputs = _loop_run(
-            g, step, packed, widths, carried, caches, count, trips, first_agents
+            g, step, packed, widths, batch, carried, caches, count, trips, first_agents
         )
         runs.append(outputs)
     return {name: g.op("Concat", *(run[name] for run in runs), axis=1) for name in runs[0]}
 
 
-def _loop_run(g: GraphBuilder, step, packed, widths, carried, caches, count, trips, first_agents):
+def _loop_run(
+    g: GraphBuilder, step, packed, widths, batch, carried, caches, count, trips, first_agents
+):
     """One `Loop` whose body runs `count` agent steps; iteration i serves the agents
     `first_agents + i * count`. -> (final carried values, {name: [B, trips * count, ..]})."""
     body = GraphBuilder(g.weights, prefix=f"steps{count}/")
@@ -379,7 +388,6 @@ def _loop_run(g: GraphBuilder, step, packed, widths, carried, caches, count, tri
         "Loop", g.op("Squeeze", trips), g.const(True, "true", np.bool_), *carried,
         outputs=len(carried) + len(scanned), body=loop_body,
     )  # fmt: skip
-    batch = g.op("Shape", "obs", end=1)
     stacked = {}
     for (name, size), tensor in zip(step.outputs().items(), results[len(carried) :], strict=True):
         rest = [-1] + [size] * bool(size)  # [trips, B, count, ..] -> [B, trips * count, ..]
