@@ -226,8 +226,8 @@ class Policy:
                 "obs": (batch, n, self.obs_dim),
                 "noise": per_agent,
                 **({"available": per_agent} if self.discrete else {}),
-                **dict.fromkeys(self._outputs, per_agent),
                 "actions": (batch, n, 1) if self.discrete else per_agent,
+                **dict.fromkeys(self._outputs[1:-1], per_agent),  # mean + std, or logits
                 "values": (batch, n, 1),
             }
             bound = cache[(batch, n)] = _Bound(session, shapes)
