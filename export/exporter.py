@@ -273,15 +273,13 @@ def _sha256(path: Path) -> str:
 
 def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> dict:
     """Max |ORT - torch| per agent count: values, teacher-forced and autoregressive decoding."""
-    import onnxruntime as ort
+    from mat_runtime.policy import session  # the runtime's own session settings
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    encoder = ort.InferenceSession(str(directory / "encoder.onnx"), options)
-    step = ort.InferenceSession(str(directory / "decoder_step.onnx"), options)
-    decoders = {None: ort.InferenceSession(str(directory / "decode.onnx"), options)}
+    encoder = session((directory / "encoder.onnx").read_bytes())
+    step = session((directory / "decoder_step.onnx").read_bytes())
+    decoders = {None: session((directory / "decode.onnx").read_bytes())}
     for path in directory.glob("decode_n*.onnx"):  # specialised to one agent count
-        decoders[int(path.stem.removeprefix("decode_n"))] = ort.InferenceSession(str(path), options)
+        decoders[int(path.stem.removeprefix("decode_n"))] = session(path.read_bytes())
     cfg, rng = policy.cfg, np.random.default_rng(0)
     counts = sorted({*counts, *(n for n in decoders if n is not None)})
     result: dict[str, float] = {}

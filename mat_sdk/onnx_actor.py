@@ -15,7 +15,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from mat_runtime.policy import BATCH_DISABLED_OPTIMIZERS
+from mat_runtime.policy import session
 from mat_sdk.model import Policy
 
 
@@ -33,15 +33,7 @@ class OnnxActor:
         graph = build_decode(
             self.policy, np.zeros(dim, np.float32), np.ones(dim, np.float32), None, 0.0, 1.0
         )
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = options.inter_op_num_threads = 1
-        options.log_severity_level = 3
-        self.session = ort.InferenceSession(
-            graph.SerializeToString(),
-            options,
-            providers=["CPUExecutionProvider"],
-            disabled_optimizers=BATCH_DISABLED_OPTIMIZERS,  # rollouts act on num_envs rows
-        )
+        self.session = session(graph.SerializeToString(), batched=True)  # num_envs rows
 
     def act(self, obs: torch.Tensor, generator: torch.Generator, deterministic: bool = False):
         """Like `Policy.act` on normalised obs [B, n, D]: actions, log-probs, values."""

@@ -16,11 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 import torch
 
 from mat_export.exporter import decode_with_ort, export
 from mat_runtime import Policy
+from mat_runtime.policy import session
 from mat_sdk.bench import machine, print_table
 from mat_sdk.trainer import Trainer
 
@@ -74,10 +74,8 @@ def official_act(policy, obs: torch.Tensor) -> torch.Tensor:
 
 
 def _variants(bundle: Path, policy, obs: np.ndarray) -> dict[str, Callable[[], object]]:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = options.inter_op_num_threads = 1
-    encoder = ort.InferenceSession(str(bundle / "encoder.onnx"), options)
-    step = ort.InferenceSession(str(bundle / "decoder_step.onnx"), options)
+    encoder = session((bundle / "encoder.onnx").read_bytes())
+    step = session((bundle / "decoder_step.onnx").read_bytes())
     runtime = Policy.load(bundle, threads=1)
     x = torch.from_numpy(obs)
 
