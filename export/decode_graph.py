@@ -7,9 +7,10 @@ Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not
 (~0.5-1 µs per ONNX Runtime kernel; the torch-exported step graph ran ~89 kernels per agent).
 Written directly in ONNX it is laid out for that regime: an agent's activations are [B, 1, C],
 the layout in which ONNX Runtime fuses bias + residual + LayerNorm and bias + GELU at load;
-q/k/v projections are fused; attention scores the cached action stream itself (the query
-pulled through the key projection, the value projection folded into the output one — see
-`_stream_queries`) with ONNX's `Attention` op (opset 24); everything that does not depend on
+q/k/v projections are fused; with one head (the paper's size) attention scores the cached
+action stream itself (the query pulled through the key projection, the value projection folded
+into the output one — see `_stream_queries`), with several it caches per-head keys and values
+(`_streamed`); ONNX's `Attention` op (opset 24) either way; everything that does not depend on
 the actions already chosen (the second attention's queries, noise times std, the mask) is
 computed for all agents before the agent steps, and the agents' action means after them.
 About 20 kernels per agent remain. The steps run in ONNX `Loop`s (any agent count) or are
@@ -33,6 +34,19 @@ OPSET = 24  # `Attention` with a KV cache
 LOOP_STEPS = (1, 8)  # agent steps per iteration of the any-count graph's `Loop`s
 FLOAT, INT64 = TensorProto.FLOAT, TensorProto.INT64
 LN_EPS = 1e-5  # torch.nn.LayerNorm's default
+
+
+def _streamed(cfg) -> bool:
+    """Whether the decoder's attention scores the cached action stream itself (one head) or
+    per-head keys and values (several heads). Streaming saves the key/value projections but
+    gives every head the stream's full width: at 4 heads, 4x the attention arithmetic, which
+    shows at many agents (3 blocks, 4 heads, n = 256: 32.1 vs 29.5 ms; n = 6: 590 vs 615 µs)."""
+    return cfg.n_head == 1
+
+
+def _cache_dims(cfg) -> list[int]:
+    """[key/value heads, width] of one agent's cache entry."""
+    return [1, cfg.n_embd] if _streamed(cfg) else [cfg.n_head, cfg.n_embd // cfg.n_head]
 
 
 class GraphBuilder:
@@ -228,7 +242,7 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
     # ---- before the agent steps, for all agents at once: [B, n, ...] tensors they slice
     per_agent, widths = {"rep": rep}, {"rep": cfg.n_embd}
     for b in range(cfg.n_block):  # the second attention's queries come from rep alone
-        weight, bias = _stream_queries(w, f"decoder.blocks.{b}.attn2", cfg.n_head)
+        weight, bias = _queries(w, cfg, f"decoder.blocks.{b}.attn2")
         per_agent[f"query2.{b}"] = g.dense(rep, weight, bias, f"query2.{b}")
         widths[f"query2.{b}"] = weight.shape[1]
     embed = w["decoder.action_encoder.0.weight"].T  # [token, C]
@@ -241,7 +255,8 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
     batch = g.op("Shape", rep, end=1)
     row = g.op("Concat", batch, g.const([1, cfg.n_embd], "row", np.int64), axis=0)
     first = g.op("Expand", g.const(tokens[:1][None], "first"), row)  # agent 0's: the start
-    no_agents = g.op("Concat", batch, g.const([1, 0, cfg.n_embd], "cache", np.int64), axis=0)
+    heads, width = _cache_dims(cfg)
+    no_agents = g.op("Concat", batch, g.const([heads, 0, width], "cache", np.int64), axis=0)
     zero = numpy_helper.from_array(np.zeros(1, np.float32))
     empty = g.op("ConstantOfShape", no_agents, value=zero)
     caches = [
@@ -294,16 +309,14 @@ class _AgentStep:
     def __call__(self, g: GraphBuilder, mine: dict, x: str, past: list[str], last: bool = False):
         """`mine`: this agent's [B, 1, ..] slices of the per-agent tensors; `x`: its normalised
         token. -> (the next agent's token, None when `last`; present caches; `outputs()`)."""
-        cfg, w, heads = self.cfg, g.weights, self.cfg.n_head
+        cfg, w = self.cfg, g.weights
         present: list[str] = []
         for b in range(cfg.n_block):
             block, cache = f"decoder.blocks.{b}", past[4 * b : 4 * b + 4]
-            weight, bias = _stream_queries(w, f"{block}.attn1", heads)
-            queries = g.dense(x, weight, bias, f"{block}.attn1.queries")
-            attended = _stream_attention(g, queries, x, f"{block}.attn1", cache[:2], heads, present)
+            attended = _attention(g, cfg, x, f"{block}.attn1", cache[:2], present)
             x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
             query = mine[f"query2.{b}"]
-            attended = _stream_attention(g, query, x, f"{block}.attn2", cache[2:], heads, present)
+            attended = _attention(g, cfg, x, f"{block}.attn2", cache[2:], present, query)
             x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
             x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
         hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
@@ -359,7 +372,8 @@ def _loop_run(
     slices = {name: _split(body, part, count) for name, part in zip(widths, parts, strict=True)}
     token, present, outputs = _steps(body, step, slices, x, past, count)
     width = step.cfg.n_embd
-    cache_shape = ["batch", 1, "past", width]
+    heads, head_width = _cache_dims(step.cfg)
+    cache_shape = ["batch", heads, "past", head_width]
     scanned = [
         helper.make_tensor_value_info(outputs[name], INT64, ["batch", count])
         if size == 0
@@ -422,6 +436,33 @@ def _unrolled(g: GraphBuilder, step: _AgentStep, per_agent: dict, first: str, pa
     """The agent steps written out for exactly `agents` agents: no loop machinery at all."""
     slices = {name: _split(g, tensor, agents) for name, tensor in per_agent.items()}
     return _steps(g, step, slices, first, past, agents, end=True)[2]
+
+
+def _queries(w: dict, cfg, attn: str) -> tuple[np.ndarray, np.ndarray]:
+    """The query projection of a decoder attention (stream queries when `_streamed`)."""
+    if _streamed(cfg):
+        return _stream_queries(w, attn, cfg.n_head)
+    return w[f"{attn}.query.weight"].T, w[f"{attn}.query.bias"]
+
+
+def _attention(g: GraphBuilder, cfg, stream, attn, past, present, query=None) -> str:
+    """One agent's decoder attention over the agents so far, its own entry `stream` [B, 1, C]
+    included: the output projection of the mixed values. `query`: [B, 1, ..] precomputed
+    (the second attention's), else projected from `stream`. Appends the caches to `present`."""
+    heads = cfg.n_head
+    if _streamed(cfg):
+        if query is None:
+            query = g.dense(stream, *_queries(g.weights, cfg, attn), f"{attn}.queries")
+        return _stream_attention(g, query, stream, attn, past, heads, present)
+    if query is None:
+        query, key, value = g.qkv(stream, attn, ("query", "key", "value"))
+    else:
+        key, value = g.qkv(stream, attn, ("key", "value"))
+    mixed, *caches = g.op(
+        "Attention", query, key, value, "", *past, outputs=3, q_num_heads=heads, kv_num_heads=heads
+    )
+    present += caches
+    return g.linear(mixed, f"{attn}.proj")
 
 
 def _stream_queries(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarray]:
