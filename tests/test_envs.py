@@ -163,6 +163,33 @@ def test_bad_actions_raise_value_error_naming_the_agent(actions, message):
         env.step(actions)
 
 
+@pytest.mark.parametrize("env_id", ["cheetah-6x1", "coordination-3"])
+def test_array_team_refuses_bad_actions_and_wrappers_check_once(env_id, monkeypatch):
+    team = envs.make_team(env_id, seed=0)
+    team.reset(seed=0)
+    good = np.zeros((team.n_agents, team.act_dim))
+    bad = good.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="agent_1: action contains NaN"):
+        team.step(bad)
+    with pytest.raises(ValueError, match=r"actions have shape \(3,\)"):
+        team.step(good[:3, 0])
+    calls = []
+    check = type(team).check_actions
+    monkeypatch.setattr(
+        type(team), "check_actions", lambda self, a: calls.append(1) or check(self, a)
+    )
+    team.step(good)
+    assert len(calls) == 1
+    env = envs.make(env_id, seed=0)  # checks its per-agent dict, then steps unchecked
+    env.reset(seed=0)
+    env.step({agent: np.zeros(team.act_dim) for agent in env.agents})
+    with envs.make_vec(env_id, num_envs=2, seed=0) as vec:  # checks the whole batch
+        vec.reset()
+        vec.step(np.zeros((2, team.n_agents, team.act_dim)))
+    assert len(calls) == 1
+
+
 def test_out_of_range_actions_are_clipped():
     results = []
     for value in (1.0, 7.5):

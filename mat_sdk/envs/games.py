@@ -15,10 +15,12 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from mat_sdk.envs.base import ArrayTeam
+
 _ID = re.compile(r"coordination-(\d+)$")
 
 
-class CoordinationGame:
+class CoordinationGame(ArrayTeam):
     action_type = "discrete"
 
     def __init__(
@@ -62,11 +64,8 @@ class CoordinationGame:
         obs[np.arange(self.n_agents), self.size + np.array(self.active)] = 1.0
         return obs
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        picks = np.asarray(actions, dtype=np.float64).reshape(self.n_agents)
-        if not np.isfinite(picks).all():
-            raise ValueError("actions must be finite option indices")
-        picks = picks.astype(int)
+    def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        picks = actions.reshape(self.n_agents).astype(int)  # option indices
         leader_right = self.active[0] != 0 or picks[0] == self._target
         reward = float(leader_right and len(set(picks.tolist())) == self.n_agents)
         return self.observe(), reward, True, False

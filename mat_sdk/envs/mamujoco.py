@@ -14,11 +14,13 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from mat_sdk.envs.base import ArrayTeam
+
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
 
 
-class MaMuJoCoTeam:
+class MaMuJoCoTeam(ArrayTeam):
     """A MaMuJoCo scenario with the array API of `RobotTeam` (obs padded to one size)."""
 
     action_type = "continuous"
@@ -73,13 +75,8 @@ class MaMuJoCoTeam:
         self._steps = 0
         return self._pack(obs)
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        actions = np.clip(np.asarray(actions, dtype=np.float64), -1.0, 1.0)
-        if actions.shape != (self.n_agents, self.act_dim) or not np.isfinite(actions).all():
-            raise ValueError(
-                f"actions must be finite with shape ({self.n_agents}, {self.act_dim}), "
-                f"got {actions.shape}"
-            )
+    def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        actions = np.clip(actions, -1.0, 1.0)
         per_agent = {
             name: (0.0 if row in self._zeroed else 1.0) * actions[row, : self.act_dims[row]]
             for row, name in enumerate(self.agents)

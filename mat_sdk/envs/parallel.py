@@ -11,7 +11,7 @@ from pettingzoo import ParallelEnv
 
 
 class TeamParallelEnv(ParallelEnv):
-    """A PettingZoo parallel env over any team core (`RobotTeam` or `MaMuJoCoTeam`).
+    """A PettingZoo parallel env over any `ArrayTeam` (robot, game or MaMuJoCo scenario).
 
     Every agent gets the shared team reward. Actions outside [-1, 1] are clipped; a missing
     or unknown agent, a wrong shape, NaN or inf raises `ValueError` naming the agent.
@@ -68,7 +68,7 @@ class TeamParallelEnv(ParallelEnv):
             if not np.isfinite(action).all():
                 raise ValueError(f"{agent}: action contains NaN or inf: {action}")
             self._actions[row, : expected[0]] = action
-        obs, reward, terminated, truncated = self.team.step(self._actions)
+        obs, reward, terminated, truncated = self.team.advance(self._actions)  # checked above
         agents = self.agents
         if terminated or truncated:
             self.agents = []

@@ -17,6 +17,7 @@ from collections.abc import Mapping
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.base import ArrayTeam
 from mat_sdk.envs.decomposition import (
     actuator_joints,
     decompose,
@@ -35,8 +36,8 @@ def agent_name(index: int) -> str:
     return f"agent_{index}"
 
 
-class RobotTeam:
-    """A multi-agent robot with an array API. See `mat_sdk.envs.make` for the options."""
+class RobotTeam(ArrayTeam):
+    """A multi-agent robot with the array API. See `mat_sdk.envs.make` for the options."""
 
     action_type = "continuous"
 
@@ -193,13 +194,8 @@ class RobotTeam:
         self._steps = 0
         return self.observe()
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        """Apply `actions [n_agents, act_dim]`; returns obs, reward, terminated, truncated.
-
-        Finite values outside [-1, 1] are clipped; entries past an agent's own action size
-        are ignored. A wrong shape, NaN or inf raises `ValueError` naming the agent.
-        """
-        flat = self.check_actions(actions)[self._action_driven]
+    def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
         np.minimum(flat, 1.0, out=flat)
         np.maximum(flat, -1.0, out=flat)
         self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
@@ -212,18 +208,6 @@ class RobotTeam:
         reward = float(self._reward(self.physics))
         terminated = self._task.get_termination(self.physics) is not None
         return self.observe(), reward, terminated, self._steps >= self.episode_limit
-
-    def check_actions(self, actions: np.ndarray) -> np.ndarray:
-        array = np.asarray(actions, dtype=np.float64)
-        if array.shape != (self.n_agents, self.act_dim):
-            raise ValueError(
-                f"actions have shape {array.shape}, expected (n_agents, act_dim) = "
-                f"({self.n_agents}, {self.act_dim}) for {self.spec.env_id}"
-            )
-        if not np.isfinite(array).all():
-            row = int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])
-            raise ValueError(f"{self.agents[row]}: action contains NaN or inf: {array[row]}")
-        return array.reshape(-1)
 
     def observe(self) -> np.ndarray:
         source = np.concatenate(

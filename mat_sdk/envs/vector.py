@@ -69,7 +69,7 @@ class _EnvSlice:
         b = self.buffers
         for k, team in enumerate(self.teams):
             i = self.start + k
-            obs, reward, terminated, truncated = team.step(b.actions[i])
+            obs, reward, terminated, truncated = team.advance(b.actions[i])  # VecTeam.step checked
             self._returns[k] += reward
             self._lengths[k] += 1
             b.reward[i], b.terminated[i], b.truncated[i] = reward, terminated, truncated

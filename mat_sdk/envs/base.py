@@ -1,0 +1,46 @@
+"""`ArrayTeam`: the array API every env family implements (robots, games, MaMuJoCo)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class ArrayTeam:
+    """A team stepped with arrays: actions `[n_agents, act_dim]` in, obs `[n_agents, obs_dim]`,
+    the shared reward and the episode flags out.
+
+    `step` checks the actions and then calls `advance`, which trusts them. The wrappers that
+    check a whole batch (`VecTeam`) or a dict of per-agent actions (the PettingZoo env)
+    themselves call `advance`, so each env step checks its actions once.
+    Subclasses set `n_agents`, `act_dim`, `agents`, `env_id` and implement `advance`.
+    """
+
+    n_agents: int
+    act_dim: int
+    agents: list[str]
+    env_id: str
+
+    def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
+        """Apply `actions [n_agents, act_dim]`; returns obs, reward, terminated, truncated.
+
+        A wrong shape, NaN or inf raises `ValueError` naming the agent. Continuous teams clip
+        finite values to [-1, 1] and ignore entries past an agent's own action size.
+        """
+        return self.advance(self.check_actions(actions))
+
+    def check_actions(self, actions) -> np.ndarray:
+        """`actions` as a float64 `[n_agents, act_dim]` array of finite values, or ValueError."""
+        array = np.asarray(actions, dtype=np.float64)
+        if array.shape != (self.n_agents, self.act_dim):
+            raise ValueError(
+                f"actions have shape {array.shape}, expected (n_agents, act_dim) = "
+                f"({self.n_agents}, {self.act_dim}) for {self.env_id}"
+            )
+        if not np.isfinite(array).all():
+            row = int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])
+            raise ValueError(f"{self.agents[row]}: action contains NaN or inf: {array[row]}")
+        return array
+
+    def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        """`step` for actions already checked: a float64 `[n_agents, act_dim]` array."""
+        raise NotImplementedError
