@@ -342,17 +342,17 @@ def _loop(
     of 1, 4, 16 measured no better); a loop may run zero times. -> [B, n, ..] outputs."""
     packed = g.op("Concat", *per_agent.values(), axis=-1)
     left = g.op("Shape", "obs", start=1, end=2)  # agents not yet given to a loop
-    trips = {}
+    trips, starts = {}, {}
     for count in sorted(LOOP_STEPS, reverse=True):
         size = g.const([count], "count", np.int64)
         trips[count], left = g.op("Div", left, size), g.op("Mod", left, size)
-    start, carried, runs = g.const([0], "zero", np.int64), [first, *empty], []
+        starts[count] = left  # the agents before this loop's: the smaller loops serve them
+    carried, runs = [first, *empty], []
     for count in sorted(LOOP_STEPS):  # the agents in order: single steps first
-        first_agents = g.op("Add", start, g.const(np.arange(count), "steps", np.int64))
+        first_agents = g.op("Add", starts[count], g.const(np.arange(count), "steps", np.int64))
         carried, outputs = _loop_run(
             g, step, packed, widths, batch, carried, caches, count, trips[count], first_agents
         )
-        start = g.op("Add", start, g.op("Mul", trips[count], g.const([count], "count", np.int64)))
         runs.append(outputs)
     return {name: g.op("Concat", *(run[name] for run in runs), axis=1) for name in runs[0]}
 
