@@ -7,6 +7,7 @@ from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs
 from mat_sdk.envs.robots import spec_for
+from mat_sdk.envs.vector import TeamFactory, VecTeam
 
 ROBOT_IDS = [
     "cheetah-6x1",
@@ -303,3 +304,16 @@ def test_swimmer_family_and_spec_errors():
     assert len(spec_for("swimmer-11").groups) == 10
     with pytest.raises(ValueError, match="N >= 3"):
         spec_for("swimmer-2")
+
+
+def _team_only_for_seed_0(seed):
+    if seed:
+        raise RuntimeError(f"no team for seed {seed}")
+    return envs.make_team("hopper-4x1", seed=seed)
+
+
+def test_vector_env_reports_a_worker_that_fails_to_start():
+    factory = TeamFactory(_team_only_for_seed_0, {})
+    with pytest.raises(RuntimeError, match="env worker failed") as error:
+        VecTeam(factory, num_envs=2, workers=1)
+    assert "no team for seed 1" in str(error.value)

@@ -174,6 +174,7 @@ class VecTeam:
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
+        self._closed = False  # before the workers start: a failing one closes the rest
         self._pipes: list[Connection] = []
         self._processes: list[mp.Process] = []
         bounds = np.linspace(0, num_envs, workers + 2).astype(int)  # this process's share first
@@ -202,7 +203,6 @@ class VecTeam:
                 self._pipes.append(parent)
                 self._processes.append(process)
             self._wait()
-        self._closed = False
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset every copy; with a seed, copy i restarts its random stream at `seed + i`."""
