@@ -45,8 +45,14 @@ def _streamed(cfg) -> bool:
 
 
 def _cache_dims(cfg) -> list[int]:
-    """[key/value heads, width] of one agent's cache entry."""
-    return [1, cfg.n_embd] if _streamed(cfg) else [cfg.n_head, cfg.n_embd // cfg.n_head]
+    """One agent's cache entry: [width] of its action stream entry (`_streamed`), else
+    [heads, head width] of its keys or values."""
+    return [cfg.n_embd] if _streamed(cfg) else [cfg.n_head, cfg.n_embd // cfg.n_head]
+
+
+def _cache_kinds(cfg) -> tuple[str, ...]:
+    """The caches of one decoder attention: the stream itself, or its keys and values."""
+    return ("stream",) if _streamed(cfg) else ("key", "value")
 
 
 class GraphBuilder:
@@ -255,15 +261,15 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
     batch = g.op("Shape", rep, end=1)
     row = g.op("Concat", batch, g.const([1, cfg.n_embd], "row", np.int64), axis=0)
     first = g.op("Expand", g.const(tokens[:1][None], "first"), row)  # agent 0's: the start
-    heads, width = _cache_dims(cfg)
-    no_agents = g.op("Concat", batch, g.const([heads, 0, width], "cache", np.int64), axis=0)
+    dims = _cache_dims(cfg)
+    no_agents = g.op("Concat", batch, g.const([*dims[:-1], 0, dims[-1]], "cache", np.int64), axis=0)
     zero = numpy_helper.from_array(np.zeros(1, np.float32))
     empty = g.op("ConstantOfShape", no_agents, value=zero)
     caches = [
         f"{b}.{attn}.{kind}"
         for b in range(cfg.n_block)
         for attn in ("attn1", "attn2")
-        for kind in ("key", "value")
+        for kind in _cache_kinds(cfg)
     ]
     step = _AgentStep(cfg, discrete, embed, tokens[1:])
     if agents is None:
@@ -312,11 +318,12 @@ class _AgentStep:
         cfg, w = self.cfg, g.weights
         present: list[str] = []
         for b in range(cfg.n_block):
-            block, cache = f"decoder.blocks.{b}", past[4 * b : 4 * b + 4]
-            attended = _attention(g, cfg, x, f"{block}.attn1", cache[:2], present)
+            per = len(past) // cfg.n_block
+            block, cache = f"decoder.blocks.{b}", past[per * b : per * b + per]
+            attended = _attention(g, cfg, x, f"{block}.attn1", cache[: per // 2], present)
             x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
             query = mine[f"query2.{b}"]
-            attended = _attention(g, cfg, x, f"{block}.attn2", cache[2:], present, query)
+            attended = _attention(g, cfg, x, f"{block}.attn2", cache[per // 2 :], present, query)
             x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
             x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
         hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
@@ -372,8 +379,8 @@ def _loop_run(
     slices = {name: _split(body, part, count) for name, part in zip(widths, parts, strict=True)}
     token, present, outputs = _steps(body, step, slices, x, past, count)
     width = step.cfg.n_embd
-    heads, head_width = _cache_dims(step.cfg)
-    cache_shape = ["batch", heads, "past", head_width]
+    dims = _cache_dims(step.cfg)
+    cache_shape = ["batch", *dims[:-1], "past", dims[-1]]
     scanned = [
         helper.make_tensor_value_info(outputs[name], INT64, ["batch", count])
         if size == 0
@@ -493,12 +500,12 @@ def _stream_output(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarr
 def _stream_attention(g: GraphBuilder, queries, stream, attn, past: list[str], heads, present):
     """One agent's stream queries [B, 1, H*C] attend over the cached stream plus its own entry
     `stream` [B, 1, C]: ONNX `Attention` with H query heads sharing one key/value head of
-    width C (the stream serves as both; scale already folded into the queries). Appends the
-    caches [B, 1, agents so far, C] to `present`."""
-    mixed, *caches = g.op(
-        "Attention", queries, stream, stream, "", *past,
-        outputs=3, scale=1.0, q_num_heads=heads, kv_num_heads=1,
-    )  # fmt: skip
-    present += caches
+    width C (the stream serves as both; scale already folded into the queries). The grown
+    stream [B, agents so far, C] is the one cache, appended to `present`: one copy per step
+    where `Attention`'s own past/present would keep (and copy) it twice, as keys and as values
+    (n = 64: 1,545 vs 1,595 µs; n = 256: 7.1 vs 7.7 ms)."""
+    full = g.op("Concat", past[0], stream, axis=1)
+    mixed = g.op("Attention", queries, full, full, scale=1.0, q_num_heads=heads, kv_num_heads=1)
+    present.append(full)
     weight, bias = _stream_output(g.weights, attn, heads)
     return g.dense(mixed, weight, bias, f"{attn}.out")
