@@ -40,10 +40,9 @@ class OnnxActor:
         shape = (*obs.shape[:2], self.policy.cfg.action_dim)
         noise = torch.zeros(shape) if deterministic else self.policy.dist.noise(shape, generator)
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}
-        head = ["logits"] if self.discrete else ["mean", "std"]
         if self.discrete:
             feed["available"] = np.ones(shape, np.float32)
-        outputs = self.session.run(["actions", *head, "values"], feed)
+        outputs = self.session.run(None, feed)  # actions, mean + std or logits, values
         actions, *params, values = (torch.from_numpy(out) for out in outputs)
         dist = self.policy.dist.make(params[0], params[1] if len(params) > 1 else None, None)
         log_prob = self.policy.dist.log_prob_entropy(dist, actions)[0]
