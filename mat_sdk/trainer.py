@@ -252,6 +252,7 @@ class Trainer:
         per_update = cfg.num_envs * cfg.rollout_length
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         bar = _progress(total_steps, self.progress["steps"], progress_bar)
+        shown_return = "-"  # the latest finished episodes' mean; "-" until one finishes
         try:
             while self.progress["steps"] < total_steps:
                 start = time.perf_counter()
@@ -277,10 +278,10 @@ class Trainer:
                     log.write(metrics)
                 if self.out_dir and self.progress["updates"] % cfg.checkpoint_every == 0:
                     self.save(self.out_dir / CHECKPOINT_NAME)
+                if finished:
+                    shown_return = f"{metrics['return_mean']:.1f}"
                 bar.update(per_update)
-                bar.set_postfix(
-                    ret=f"{metrics['return_mean']:.1f}", sps=f"{metrics['steps_per_s']:.0f}"
-                )
+                bar.set_postfix(ret=shown_return, sps=f"{metrics['steps_per_s']:.0f}")
                 if callback is not None and callback(self, metrics) is False:
                     break
             if self.out_dir:

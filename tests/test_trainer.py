@@ -1,6 +1,7 @@
 """PPO trainer: learning (honest, seconds), exact resume, crash safety, clear errors."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -187,3 +188,22 @@ def test_every_algo_trains_saves_loads_and_predicts(tmp_path):
         with Trainer.load(path) as loaded:
             assert np.array_equal(loaded.predict(obs), expected)
             assert loaded.predict(obs[None]).shape == (1, 2, 2)
+
+
+def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
+    finished = []  # per update (10 steps of each env): the mean return, nan if none ended
+    with Trainer(
+        "hopper-4x1",
+        "mat",
+        num_envs=2,
+        rollout_length=10,
+        ppo_epochs=1,
+        num_minibatches=1,
+        env_options={"episode_limit": 25},
+    ) as trainer:
+        trainer.learn(80, callback=lambda _, metrics: finished.append(metrics["return_mean"]))
+    assert np.isnan(finished).tolist() == [True, True, False, True]  # episodes end at step 25
+    shown = re.findall(r"ret=([^,\]]*)", capsys.readouterr().err)
+    assert shown[0] == "-" and "nan" not in shown
+    latest = [r for r in finished if not np.isnan(r)][-1]
+    assert shown[-1] == f"{latest:.1f}"  # held through the updates where none ended
