@@ -317,13 +317,13 @@ class _AgentStep:
         token. -> (the next agent's token, None when `last`; present caches; `outputs()`)."""
         cfg, w = self.cfg, g.weights
         present: list[str] = []
+        kinds = len(_cache_kinds(cfg))  # caches per attention
         for b in range(cfg.n_block):
-            per = len(past) // cfg.n_block
-            block, cache = f"decoder.blocks.{b}", past[per * b : per * b + per]
-            attended = _attention(g, cfg, x, f"{block}.attn1", cache[: per // 2], present)
+            block, cache = f"decoder.blocks.{b}", past[2 * kinds * b : 2 * kinds * (b + 1)]
+            attended = _attention(g, cfg, x, f"{block}.attn1", cache[:kinds], present)
             x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
             query = mine[f"query2.{b}"]
-            attended = _attention(g, cfg, x, f"{block}.attn2", cache[per // 2 :], present, query)
+            attended = _attention(g, cfg, x, f"{block}.attn2", cache[kinds:], present, query)
             x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
             x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
         hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
