@@ -75,11 +75,12 @@ def test_export_is_deterministic(mat_checkpoint, tmp_path):
     ("env_id", "algo", "kind", "counts"),
     [
         ("coordination-3", "mat", "autoregressive", ["1", "2", "3", "6", "17", "64"]),
+        ("hopper-2x2", "mat", "autoregressive", ["1", "2", "6", "17", "64"]),  # one head
         ("hopper-2x2", "mat-dec", "decentralised", ["1", "2", "6", "17", "64"]),
         ("coordination-3", "mappo", "decentralised", ["3"]),
     ],
 )
-def test_discrete_and_baseline_policies_export(tmp_path, env_id, algo, kind, counts):
+def test_one_head_discrete_and_baseline_policies_export(tmp_path, env_id, algo, kind, counts):
     manifest = export(make_checkpoint(tmp_path / "c.pt", env_id, algo), tmp_path / "bundle")
     assert manifest["kind"] == kind and list(manifest["parity"]["max_abs_diff"]) == counts
     assert max(manifest["parity"]["max_abs_diff"].values()) <= 1e-5
