@@ -29,6 +29,7 @@ from mat_sdk.ppo import gae, ppo_loss
 from mat_sdk.run_log import RunLog
 
 CHECKPOINT_NAME = "checkpoint.pt"
+ROLLOUT_BACKENDS = ("torch", "onnx")
 
 
 @dataclass
@@ -61,7 +62,7 @@ class TrainConfig:
     checkpoint_every: int = 10  # updates
     device: str = "cpu"
     compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
-    # "onnx": act in rollouts through ONNX Runtime (mat_sdk.onnx_actor; MAT only), else torch.
+    # "onnx": act in rollouts through ONNX Runtime (mat_sdk.onnx_actor), else torch.
     rollout_backend: str = "torch"
     # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
@@ -71,6 +72,13 @@ class TrainConfig:
     # Ray: "local" or a cluster address. Rollouts then run on `workers` Ray actors, each
     # stepping its share of the num_envs copies; the learner (this process) updates.
     ray: str | None = None
+
+    def __post_init__(self):
+        if self.rollout_backend not in ROLLOUT_BACKENDS:
+            raise ValueError(
+                f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
+                f"got {self.rollout_backend!r}"
+            )
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -164,10 +172,6 @@ class Trainer:
         )
         self._loss = torch.compile(self.loss) if cfg.compile else self.loss
         self._onnx_actor = None
-        if cfg.rollout_backend not in ("torch", "onnx"):
-            raise ValueError(
-                f"rollout_backend must be 'torch' or 'onnx', got {cfg.rollout_backend!r}"
-            )
         if cfg.rollout_backend == "onnx":
             from mat_sdk.onnx_actor import OnnxActor
 

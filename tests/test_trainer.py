@@ -166,6 +166,8 @@ def test_bad_input_gives_clear_errors(tmp_path):
         Trainer("cheetah-9x9", "mat", num_envs=1)
     with pytest.raises(ValueError, match="unknown training option"):
         Trainer("coordination-3", "mat", learning_rate=1.0)
+    with pytest.raises(ValueError, match="rollout_backend must be one of torch, onnx, got 'jax'"):
+        Trainer("coordination-3", "mat", rollout_backend="jax")  # refused before envs start
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
     with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint"):
