@@ -39,8 +39,8 @@ LN_EPS = 1e-5  # torch.nn.LayerNorm's default
 def _streamed(cfg) -> bool:
     """Whether the decoder's attention scores the cached action stream itself (one head) or
     per-head keys and values (several heads). Streaming saves the key/value projections but
-    gives every head the stream's full width: at 4 heads, 4x the attention arithmetic, which
-    shows at many agents (3 blocks, 4 heads, n = 256: 32.1 vs 29.5 ms; n = 6: 590 vs 615 µs)."""
+    gives every head the stream's full width: at 4 heads about even with per-head caches, at
+    8 heads and 128 wide 33-46 % slower (BENCHMARKS.md, fifth session)."""
     return cfg.n_head == 1
 
 
