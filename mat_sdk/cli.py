@@ -52,7 +52,7 @@ def main() -> None:
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero
       mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
-      mat bench envs                    env stepping speed
+      mat bench envs                    env stepping speed (also: runtime, train, scaling)
     """
 
 
@@ -438,6 +438,7 @@ def bench_scaling(env_id: str, updates: int, settings: tuple[str, ...]) -> None:
     run(env_id, updates=updates, **parse_settings(settings))
 
 
+@bench.command("train")
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--device", default="cpu", show_default=True)
 @click.option(

@@ -1,5 +1,9 @@
 """The `mat` command line: tables, one-line errors, non-zero exit codes."""
 
+import re
+from pathlib import Path
+
+import click
 from click.testing import CliRunner
 
 from mat_sdk.cli import main
@@ -103,3 +107,42 @@ def test_export_command_refuses_bad_input_in_one_line(tmp_path):
             result.exit_code != 0 and message in result.output and "Traceback" not in result.output
         )
     assert not (tmp_path / "out").exists()
+
+
+DOCUMENTED = ("README.md", "BENCHMARKS.md", "docs/RESULTS.md", "docs/FEWSHOT.md")
+INVOCATION = re.compile(r"(?:^|`|&& )\s*mat ([^`&#\n]*)", re.MULTILINE)
+
+
+def documented_invocations() -> list[tuple[str, str]]:
+    """Every `mat ...` command line the docs and the commands' help show, with where it was."""
+    root = Path(__file__).resolve().parents[1]
+    sources = {name: (root / name).read_text() for name in DOCUMENTED}
+    groups = [("mat", main)]
+    while groups:
+        path, group = groups.pop()
+        sources[f"{path} --help"] = group.help
+        for name, command in group.commands.items():
+            if isinstance(command, click.Group):
+                groups.append((f"{path} {name}", command))
+            else:
+                sources[f"{path} {name} --help"] = command.help or ""
+    return [
+        (where, match.group(1).strip())
+        for where, text in sources.items()
+        for match in INVOCATION.finditer(text)
+    ]
+
+
+def test_every_documented_command_and_option_exists():
+    invocations = documented_invocations()
+    assert any(line.startswith("bench train") for _, line in invocations)
+    for where, line in invocations:
+        command, words = main, [word for word in line.split() if word != "..."]
+        while words and isinstance(command, click.Group) and words[0] in command.commands:
+            command = command.commands[words.pop(0)]
+        named_none = command is main or (isinstance(command, click.Group) and words)
+        assert not named_none, f"{where}: `mat {line}` names no command"
+        options = {opt for param in command.params for opt in param.opts}
+        for word in words:
+            if word.startswith("--") and word not in ("--help",):
+                assert word in options, f"{where}: `mat {line}`: {command.name} has no {word}"
