@@ -13,6 +13,7 @@ The defaults are the paper's MA-MuJoCo recipe (`PAPER_NOTES.md`); MAPPO gets its
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
@@ -30,6 +31,25 @@ from mat_sdk.run_log import RunLog
 
 CHECKPOINT_NAME = "checkpoint.pt"
 ROLLOUT_BACKENDS = ("torch", "onnx")
+
+
+# What each numeric option must be: (fields, test, the rule as the error states it).
+# `None` passes (critic_lr's default: the actor's rate).
+_RULES = (
+    (
+        ("num_envs", "rollout_length", "lr", "critic_lr", "adam_eps", "ppo_epochs",
+         "num_minibatches", "clip", "huber_delta", "max_grad_norm", "n_embd", "n_head",
+         "n_block", "checkpoint_every"),
+        lambda x: x > 0,
+        "> 0",
+    ),
+    (
+        ("seed", "workers", "entropy_coef", "value_coef", "torch_threads"),
+        lambda x: x >= 0,
+        ">= 0",
+    ),
+    (("gamma", "gae_lambda"), lambda x: 0 <= x <= 1, "in [0, 1]"),
+)  # fmt: skip
 
 
 @dataclass
@@ -74,11 +94,23 @@ class TrainConfig:
     ray: str | None = None
 
     def __post_init__(self):
+        """Refuse a bad value here, before any env worker starts, naming the field."""
+        integer = {f.name for f in fields(self) if f.type == "int"}
+        for names, ok, rule in _RULES:
+            for name in names:
+                value = getattr(self, name)
+                kind = int if name in integer else int | float
+                number = isinstance(value, kind) and not isinstance(value, bool)
+                if value is not None and not (number and math.isfinite(value) and ok(value)):
+                    what = "an integer" if name in integer else "a number"
+                    raise ValueError(f"{name} must be {what} {rule}, got {value!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
                 f"got {self.rollout_backend!r}"
             )
+        if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):
+            raise ValueError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
@@ -254,6 +286,11 @@ class Trainer:
         """
         cfg = self.config
         per_update = cfg.num_envs * cfg.rollout_length
+        if cfg.num_minibatches > per_update:  # refused before the first rollout
+            raise ValueError(
+                f"num_minibatches {cfg.num_minibatches} > env-steps per update {per_update} "
+                "(num_envs x rollout_length)"
+            )
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         bar = _progress(total_steps, self.progress["steps"], progress_bar)
         shown_return = "-"  # the latest finished episodes' mean; "-" until one finishes
@@ -399,8 +436,6 @@ class Trainer:
         flat["advantages"] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
         size = flat["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
-        if minibatch < 1:
-            raise ValueError(f"num_minibatches {cfg.num_minibatches} > env-steps per update {size}")
         # Accumulate on the device and read once per update: no host sync per minibatch.
         sums = dict.fromkeys(
             ("policy_loss", "value_loss", "entropy", "clip_fraction", "grad_norm"), 0.0

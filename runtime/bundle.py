@@ -28,6 +28,13 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
     """The manifest, checked, and the graphs `select(manifest)` names, each checked by sha256."""
     path = Path(path)
     manifest_path = path / "manifest.json"
+    if path.is_file():
+        hint = (
+            f"pass its directory, {path.parent}"
+            if path.name == "manifest.json"
+            else "pass the directory `mat export` wrote (a checkpoint needs `mat export` first)"
+        )
+        raise BundleError(f"{path}: a file, not a bundle directory; {hint}")
     if not path.is_dir():
         raise BundleError(f"{path}: no such bundle directory; create one with `mat export`")
     if not manifest_path.is_file():

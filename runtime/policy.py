@@ -181,8 +181,9 @@ class Policy:
         if array.dtype.kind not in "fiub":
             raise InputError(f"obs must be numbers, got dtype {array.dtype}")
         if array.ndim not in (2, 3):
+            one_agent = "; for a single agent pass obs[None]" if array.ndim == 1 else ""
             raise InputError(
-                f"obs must be [n, obs_dim] or [B, n, obs_dim], got shape {array.shape}"
+                f"obs must be [n, obs_dim] or [B, n, obs_dim], got shape {array.shape}{one_agent}"
             )
         if array.shape[-1] != self.obs_dim:
             raise InputError(

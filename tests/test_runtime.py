@@ -146,7 +146,7 @@ def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
     nan[4, 2] = np.nan
     bad_calls = [
         (lambda: policy.act(good[:, :-1]), "features per agent"),
-        (lambda: policy.act(good[0]), "shape"),
+        (lambda: policy.act(good[0]), r"for a single agent pass obs\[None\]"),
         (lambda: policy.act(good[None, None]), "shape"),
         (lambda: policy.act(np.zeros((0, policy.obs_dim))), "no agents"),
         (lambda: policy.act(nan), "agent 4"),
@@ -198,6 +198,8 @@ def test_broken_bundles_are_refused_before_loading(bundles, tmp_path):
         with pytest.raises(BundleError, match=messages[case]):
             Policy.load(target)
     assert issubclass(BundleError, OSError)
+    with pytest.raises(BundleError, match="a file, not a bundle directory; pass its directory"):
+        Policy.load(source / "manifest.json")
     with pytest.raises(InputError, match="not available"):
         Policy.load(source, providers=["NoSuchExecutionProvider"])
 

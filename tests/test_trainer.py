@@ -13,7 +13,7 @@ import torch
 from helpers import GAME
 
 from mat_sdk import checkpoint, envs
-from mat_sdk.trainer import Trainer, TrainingDiverged
+from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
 
 
 def train_returns(env_id, algo, steps, **options):
@@ -168,6 +168,20 @@ def test_bad_input_gives_clear_errors(tmp_path):
         Trainer("coordination-3", "mat", learning_rate=1.0)
     with pytest.raises(ValueError, match="rollout_backend must be one of torch, onnx, got 'jax'"):
         Trainer("coordination-3", "mat", rollout_backend="jax")  # refused before envs start
+    for option, message in (
+        ({"num_minibatches": 0}, "num_minibatches must be an integer > 0, got 0"),
+        ({"rollout_length": 2.5}, "rollout_length must be an integer > 0, got 2.5"),
+        ({"gamma": 1.5}, r"gamma must be a number in \[0, 1\], got 1.5"),
+        ({"lr": float("nan")}, "lr must be a number > 0, got nan"),
+        ({"lr": "1e-4"}, "lr must be a number > 0, got '1e-4'"),
+        ({"device": "tpu"}, "device must be cpu, cuda, cuda:N or auto, got 'tpu'"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig(**option)
+    with Trainer("coordination-3", "mat", num_envs=2, rollout_length=5) as trainer:
+        with pytest.raises(ValueError, match="num_minibatches 40 > env-steps per update 10"):
+            trainer.learn(1_000)
+        assert trainer.progress["steps"] == 0  # refused before any rollout
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
     with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint"):
