@@ -59,6 +59,8 @@ def remove_stale_temp_files(directory: str | os.PathLike) -> None:
 def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
     """Load and validate a checkpoint; raises `CheckpointError` with what is wrong."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path} is a directory, not a checkpoint; {_directory_hint(path)}")
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
@@ -75,3 +77,15 @@ def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
             f"({VERSION}); upgrade mat-sdk"
         )
     return payload
+
+
+def _directory_hint(directory: Path) -> str:
+    """What the user probably meant by a directory: a run's checkpoint, or a bundle's source."""
+    if (directory / "checkpoint.pt").is_file():
+        return f"pass the run's checkpoint, {directory / 'checkpoint.pt'}"
+    if (directory / "manifest.json").is_file():
+        return (
+            "it is an ONNX bundle (load it with mat_runtime.Policy); pass the checkpoint it was "
+            "exported from"
+        )
+    return "pass the checkpoint.pt that `mat train` wrote"

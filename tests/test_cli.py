@@ -101,6 +101,7 @@ def test_export_command_refuses_bad_input_in_one_line(tmp_path):
     for args, message in (
         (["export", str(tmp_path / "missing.pt")], "no checkpoint at"),
         (["export", str(junk), "-o", str(tmp_path / "out")], "is not a MAT checkpoint"),
+        (["export", str(tmp_path)], "is a directory, not a checkpoint; pass the checkpoint.pt"),
     ):
         result = CliRunner().invoke(main, args)
         assert (
