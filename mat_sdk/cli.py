@@ -110,6 +110,17 @@ def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None
     click.echo(f"random team, {steps} steps: episode returns {[round(r, 2) for r in returns]}")
 
 
+def parse_counts(text: str, option: str) -> tuple[int, ...]:
+    """`2,6,64` -> (2, 6, 64): positive integers, or a one-line error naming the option."""
+    try:
+        counts = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 1:
+        raise click.BadParameter(f"{option} takes positive integers like 2,6,64, got {text!r}")
+    return counts
+
+
 def parse_settings(values: tuple[str, ...]) -> dict:
     """`("lr=3e-4", "shuffle_agents=true")` -> typed values for `TrainConfig` fields."""
     import json
@@ -414,35 +425,43 @@ def bench_runtime(seconds: float, agents: str) -> None:
     """
     from mat_sdk.bench.runtime import main as run
 
-    try:
-        counts = tuple(int(a) for a in agents.split(","))
-    except ValueError:
-        raise click.BadParameter(f"--agents takes integers like 2,6,64, got {agents!r}") from None
-    run(agent_counts=counts, seconds=seconds)
+    run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds)
 
 
 @bench.command("scaling")
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--updates", default=3, show_default=True, help="Updates per variant.")
+@click.option(
+    "--workers", default="1,2", show_default=True, help="Worker / actor counts to compare."
+)
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Recipe changes.")
 @user_errors
-def bench_scaling(env_id: str, updates: int, settings: tuple[str, ...]) -> None:
+def bench_scaling(env_id: str, updates: int, workers: str, settings: tuple[str, ...]) -> None:
     """Env-steps/s with local worker processes vs Ray actors (needs mat-sdk[ray]).
 
     \b
-    Example (a quick check):
-      mat bench scaling --updates 3 --set ppo_epochs=1
+    Examples:
+      mat bench scaling --updates 3 --set ppo_epochs=1     a quick check
+      mat bench scaling --workers 1,4,15 --set device=cuda   a 16-core GPU machine
     """
     from mat_sdk.bench.scaling import main as run
 
-    run(env_id, updates=updates, **parse_settings(settings))
+    run(
+        env_id,
+        updates=updates,
+        workers=parse_counts(workers, "--workers"),
+        **parse_settings(settings),
+    )
 
 
 @bench.command("train")
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--device", default="cpu", show_default=True)
 @click.option(
-    "--compile", "compiled", is_flag=True, help="Also measure torch.compile (~1 min to compile)."
+    "--compile",
+    "compiled",
+    is_flag=True,
+    help="Also measure torch.compile (~1 min to compile; on CUDA also with CUDA graphs).",
 )
 @click.option("--rounds", default=3, show_default=True, help="Interleaved rounds per variant.")
 @click.option(

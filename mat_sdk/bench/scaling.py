@@ -16,20 +16,35 @@ import numpy as np
 from mat_sdk.bench import machine, print_table
 from mat_sdk.trainer import Trainer
 
-VARIANTS = {
-    "local, in-process envs": {"workers": 0},
-    "local, in-process envs, ONNX acting": {"workers": 0, "rollout_backend": "onnx"},
-    "local, 1 worker process": {"workers": 1},
-    "local, 2 worker processes": {"workers": 2},
-    "Ray, 1 actor": {"workers": 1, "ray": "local"},
-    "Ray, 2 actors": {"workers": 2, "ray": "local"},
-    "Ray, 2 actors, ONNX acting": {"workers": 2, "ray": "local", "rollout_backend": "onnx"},
-}
+
+def variants(workers: tuple[int, ...]) -> dict[str, dict]:
+    """In-process rollouts, then local worker processes and Ray actors for each count."""
+    found = {
+        "local, in-process envs": {"workers": 0},
+        "local, in-process envs, ONNX acting": {"workers": 0, "rollout_backend": "onnx"},
+    }
+    for count in workers:
+        found[f"local, {_plural(count, 'worker process', 'es')}"] = {"workers": count}
+    for count in workers:
+        found[f"Ray, {_plural(count, 'actor')}"] = {"workers": count, "ray": "local"}
+    most = max(workers)
+    found[f"Ray, {_plural(most, 'actor')}, ONNX acting"] = {
+        "workers": most,
+        "ray": "local",
+        "rollout_backend": "onnx",
+    }
+    return found
 
 
-def main(env_id: str = "cheetah-6x1", updates: int = 3, **recipe) -> None:
+def _plural(count: int, noun: str, suffix: str = "s") -> str:
+    return f"{count} {noun}{suffix if count != 1 else ''}"
+
+
+def main(
+    env_id: str = "cheetah-6x1", updates: int = 3, workers: tuple[int, ...] = (1, 2), **recipe
+) -> None:
     rows = []
-    for label, options in VARIANTS.items():
+    for label, options in variants(workers).items():
         times: list[dict] = []
         with Trainer(env_id, "mat", **options, **recipe) as trainer:
             per_update = trainer.config.num_envs * trainer.config.rollout_length
