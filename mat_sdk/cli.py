@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import click
 
@@ -23,6 +25,23 @@ def user_errors(command: Callable) -> Callable:
             ) from None
 
     return wrapper
+
+
+@contextlib.contextmanager
+def resumable(checkpoint: Path, resume: str) -> Iterator[None]:
+    """Ctrl-C: say what the last checkpoint holds and the command that continues from it."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        from mat_sdk import checkpoint as checkpoints
+
+        if checkpoint.is_file():
+            steps = checkpoints.load(checkpoint)["progress"]["steps"]
+            where = f"{checkpoint} holds the run at {steps:,} steps; continue with:\n  {resume}"
+        else:
+            where = "no checkpoint was written yet; run the same command again to start over"
+        click.echo(f"\ninterrupted; {where}", err=True)
+        raise SystemExit(130) from None
 
 
 def parse_faults(values: tuple[str, ...]) -> dict[str, str]:
@@ -203,8 +222,6 @@ def train(
     With --ray, --workers counts Ray actors (each steps num-envs/workers copies); needs
     pip install 'mat-sdk[ray]'. A dead worker is replaced and its share re-collected.
     """
-    from pathlib import Path
-
     from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
 
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
@@ -231,7 +248,10 @@ def train(
             ray=ray_address,
             **parse_settings(settings),
         )
-    with trainer:
+    again = f"mat train {env_id} --out {out} --steps {steps} --resume"
+    again += f" --workers {workers}" if workers else ""
+    again += f" --device {device}" if device != "cpu" else ""
+    with resumable(ckpt, again), trainer:
         trainer.learn(steps, progress_bar=not quiet)
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
@@ -329,8 +349,6 @@ def finetune(
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat finetune runs/swimmer6/checkpoint.pt swimmer-9 --steps 50000 --out runs/sw9
     """
-    from pathlib import Path
-
     import numpy as np
 
     from mat_sdk.finetune import finetune as run
@@ -338,19 +356,21 @@ def finetune(
     fault_map = parse_faults(faults)
     label = "-".join(f"{k}_{v}" for k, v in fault_map.items()) or (env_id or "same")
     out = Path(out_dir or f"runs/finetune-{label.replace(':', '_')}")
-    result = run(
-        checkpoint,
-        env=env_id,
-        faults=fault_map,
-        steps=steps,
-        out_dir=out,
-        eval_episodes=episodes,
-        reset_optimizer=not keep_optimizer,
-        lr=lr,
-        resume=resume,
-        progress_bar=not quiet,
-        **parse_settings(settings),
-    )
+    again = f"mat finetune {checkpoint} --out {out} --steps {steps} --resume"
+    with resumable(out / "checkpoint.pt", again):
+        result = run(
+            checkpoint,
+            env=env_id,
+            faults=fault_map,
+            steps=steps,
+            out_dir=out,
+            eval_episodes=episodes,
+            reset_optimizer=not keep_optimizer,
+            lr=lr,
+            resume=resume,
+            progress_bar=not quiet,
+            **parse_settings(settings),
+        )
     result.trainer.close()
     click.echo(
         f"zero-shot return {result.zero_shot_mean:.1f} ± {np.std(result.zero_shot):.1f} -> "
@@ -380,8 +400,6 @@ def export_command(checkpoint: str, out_dir: str | None, force: bool) -> None:
     disagrees by more than 1e-4 is refused and nothing is written.
     Example: mat export runs/cheetah/checkpoint.pt -o cheetah_onnx
     """
-    from pathlib import Path
-
     from mat_export import export
 
     target = (

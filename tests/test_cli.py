@@ -147,3 +147,31 @@ def test_every_documented_command_and_option_exists():
         for word in words:
             if word.startswith("--") and word not in ("--help",):
                 assert word in options, f"{where}: `mat {line}`: {command.name} has no {word}"
+
+
+def test_ctrl_c_says_what_the_checkpoint_holds_and_how_to_resume(tmp_path, monkeypatch):
+    from mat_sdk.trainer import Trainer
+
+    learn = Trainer.learn
+
+    def interrupted_after_two_updates(self, total_steps, callback=None, progress_bar=True):
+        def press_ctrl_c(trainer, metrics):
+            if metrics["updates"] == 2:
+                raise KeyboardInterrupt
+
+        return learn(self, total_steps, callback=press_ctrl_c, progress_bar=progress_bar)
+
+    monkeypatch.setattr(Trainer, "learn", interrupted_after_two_updates)
+    out = tmp_path / "run"
+    args = ["train", "hopper-2x2", "--steps", "400", "--out", str(out), *TINY_TRAIN]
+    result = CliRunner().invoke(main, [*args, "--set", "checkpoint_every=1"])
+    assert result.exit_code == 130, result.output
+    assert f"{out / 'checkpoint.pt'} holds the run at 80 steps" in result.output
+    assert f"mat train hopper-2x2 --out {out} --steps 400 --resume" in result.output
+    monkeypatch.setattr(Trainer, "learn", learn)
+    resumed = CliRunner().invoke(
+        main, ["train", "hopper-2x2", "--out", str(out), "--steps", "400", "--resume", "--quiet"]
+    )
+    assert (
+        resumed.exit_code == 0 and "resuming" in resumed.output and "at 80 steps" in resumed.output
+    )
