@@ -13,6 +13,7 @@ The defaults are the paper's MA-MuJoCo recipe (`PAPER_NOTES.md`); MAPPO gets its
 from __future__ import annotations
 
 import math
+import numbers
 import re
 import time
 from collections.abc import Callable
@@ -99,11 +100,15 @@ class TrainConfig:
         for names, ok, rule in _RULES:
             for name in names:
                 value = getattr(self, name)
-                kind = int if name in integer else int | float
+                if value is None:
+                    continue
+                kind = numbers.Integral if name in integer else numbers.Real
                 number = isinstance(value, kind) and not isinstance(value, bool)
-                if value is not None and not (number and math.isfinite(value) and ok(value)):
+                if not (number and math.isfinite(value) and ok(value)):
                     what = "an integer" if name in integer else "a number"
                     raise ValueError(f"{name} must be {what} {rule}, got {value!r}")
+                # numpy scalars become Python numbers: checkpoints load with weights_only
+                setattr(self, name, int(value) if name in integer else float(value))
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "

@@ -178,6 +178,8 @@ def test_bad_input_gives_clear_errors(tmp_path):
     ):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**option)
+    accepted = TrainConfig(seed=np.int64(3), lr=np.float32(1e-4))  # numpy scalars are fine
+    assert type(accepted.seed) is int and type(accepted.lr) is float  # (weights_only loads)
     with Trainer("coordination-3", "mat", num_envs=2, rollout_length=5) as trainer:
         with pytest.raises(ValueError, match="num_minibatches 40 > env-steps per update 10"):
             trainer.learn(1_000)
