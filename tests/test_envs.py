@@ -244,6 +244,14 @@ def test_bad_faults_are_rejected_clearly():
         envs.make("cheetah-2x3", faults={"agent_0": "remove", "agent_1": "remove"})
 
 
+@pytest.mark.parametrize("env_id", ["hopper-2x2", "mamujoco:HalfCheetah-6x1"])
+def test_episode_limit_must_be_a_positive_integer(env_id):
+    for limit in (0, -5, 2.5):  # 0 used to mean the default, silently
+        with pytest.raises(ValueError, match=f"episode_limit must be an integer >= 1, got {limit}"):
+            envs.make_team(env_id, episode_limit=limit)
+    assert envs.make_team(env_id, episode_limit=7).episode_limit == 7
+
+
 def test_quadruped_tendon_actuators_own_several_joints():
     team = envs.make_team("quadruped-4x3")
     assert team.joint_names(0) == [

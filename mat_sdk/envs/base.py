@@ -5,6 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 
+def checked_episode_limit(given: int | None, default: int) -> int:
+    """The episode length to truncate at: `given` (>= 1), or the env's own `default`."""
+    if given is None:
+        return int(default)
+    if isinstance(given, bool) or not isinstance(given, int | np.integer) or given < 1:
+        raise ValueError(f"episode_limit must be an integer >= 1, got {given!r}")
+    return int(given)
+
+
 class ArrayTeam:
     """A team stepped with arrays: actions `[n_agents, act_dim]` in, obs `[n_agents, obs_dim]`,
     the shared reward and the episode flags out.

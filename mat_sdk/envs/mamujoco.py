@@ -14,7 +14,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam
+from mat_sdk.envs.base import ArrayTeam, checked_episode_limit
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
@@ -56,7 +56,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
-        self.episode_limit = int(episode_limit or spec_limit or 1000)
+        self.episode_limit = checked_episode_limit(episode_limit, spec_limit or 1000)
         self._zeroed = set()
         for name, mode in (faults or {}).items():
             if name not in self.agents or mode != "zero":

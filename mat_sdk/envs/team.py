@@ -17,7 +17,7 @@ from collections.abc import Mapping
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam
+from mat_sdk.envs.base import ArrayTeam, checked_episode_limit
 from mat_sdk.envs.decomposition import (
     actuator_joints,
     decompose,
@@ -59,10 +59,7 @@ class RobotTeam(ArrayTeam):
         self._task = self._env.task
         self._model, self._data = self.physics.model.ptr, self.physics.data.ptr
         self.substeps = round(self._env.control_timestep() / self._model.opt.timestep)
-        default_limit = self._env._step_limit
-        self.episode_limit = int(episode_limit or default_limit)
-        if self.episode_limit < 1:
-            raise ValueError(f"episode_limit must be >= 1, got {episode_limit}")
+        self.episode_limit = checked_episode_limit(episode_limit, self._env._step_limit)
         self.agent_id = (not spec.variable_count) if agent_id is None else bool(agent_id)
 
         self.team = decompose(self._model, spec.groups, hops)
