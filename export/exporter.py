@@ -59,8 +59,7 @@ def export(
     which the runtime uses when it is given exactly N agents.
     """
     out_dir = Path(out_dir)
-    if out_dir.exists() and not force:
-        raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
+    _check_target(out_dir, force)
     payload = checkpoint.load(checkpoint_path)
     policy, normalizer, value_scale = _rebuild(payload)
     cfg = policy.cfg
@@ -112,6 +111,29 @@ def export(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return manifest
+
+
+def _check_target(out_dir: Path, force: bool) -> None:
+    """Refuse to write over anything but a bundle, and over a bundle unless `force`: a wrong
+    `-o` (the run directory, `.`) must never delete a checkpoint or a project."""
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise ExportError(f"{out_dir} is a file; choose a directory for the bundle")
+    if not any(out_dir.iterdir()):
+        return
+    manifest = out_dir / "manifest.json"
+    try:
+        is_bundle = json.loads(manifest.read_text()).get("format") == FORMAT
+    except (OSError, ValueError, AttributeError):
+        is_bundle = False
+    if not is_bundle:
+        raise ExportError(
+            f"{out_dir} exists and is not a MAT bundle (no {FORMAT} manifest.json); "
+            "not replacing it, even with --force; choose a new directory"
+        )
+    if not force:
+        raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
 
 
 def _rebuild(payload: dict) -> tuple[Any, ObsNormalizer, ValueScale]:

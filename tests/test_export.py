@@ -99,8 +99,9 @@ def test_bad_input_is_refused_and_nothing_is_overwritten(mat_checkpoint, tmp_pat
     existing = tmp_path / "existing"
     existing.mkdir()
     (existing / "keep.txt").write_text("mine")
-    with pytest.raises(ExportError, match="exists; pass --force"):
-        export(mat_checkpoint, existing)
+    for force in (False, True):  # a wrong -o (a run directory, ".") is never deleted
+        with pytest.raises(ExportError, match="is not a MAT bundle.*not replacing it"):
+            export(mat_checkpoint, existing, force=force)
     assert (existing / "keep.txt").read_text() == "mine"
     with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at"):
         export(tmp_path / "missing.pt", tmp_path / "out")
