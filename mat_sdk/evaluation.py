@@ -14,6 +14,8 @@ from mat_sdk import checkpoint, envs
 from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd
 
+VIDEO_SUFFIXES = (".mp4", ".gif")  # what write_video's imageio writers produce
+
 
 @dataclass
 class LoadedPolicy:
@@ -85,6 +87,8 @@ def evaluate(
     options = {**train["env_options"], **env_options}
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"video {video}: name a {' / '.join(VIDEO_SUFFIXES)} file")
     generator = torch.Generator().manual_seed(seed)
     with envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec:
         check_compatible(loaded.policy, vec, env_id)

@@ -80,6 +80,10 @@ def test_train_resume_and_eval_from_the_command_line(tmp_path):
     )
     assert evaluated.exit_code == 0, evaluated.output
     assert "return" in evaluated.output and "+-" in evaluated.output
+    clobber = runner.invoke(
+        main, ["eval", str(out / "checkpoint.pt"), "--video", str(out / "x.pt")]
+    )
+    assert clobber.exit_code != 0 and "name a .mp4 / .gif file" in clobber.output
 
 
 def test_eval_and_train_refuse_bad_input_in_one_line(tmp_path):
