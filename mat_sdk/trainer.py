@@ -315,6 +315,9 @@ class Trainer:
                     "return_min": float(np.min(finished)) if finished else math.nan,
                     "return_max": float(np.max(finished)) if finished else math.nan,
                     "episodes": len(finished),
+                    # the team reward per env step in this rollout: a signal every update,
+                    # also while no episode has ended yet (dm_control tasks: 0..1)
+                    "reward_per_step": float(batch["rewards"].mean()),
                     **losses,
                     "rollout_s": rolled - start,
                     "update_s": updated - rolled,
@@ -327,7 +330,11 @@ class Trainer:
                 if finished:
                     shown_return = f"{metrics['return_mean']:.1f}"
                 bar.update(per_update)
-                bar.set_postfix(ret=shown_return, sps=f"{metrics['steps_per_s']:.0f}")
+                bar.set_postfix(
+                    ret=shown_return,
+                    rew=f"{metrics['reward_per_step']:.3g}",
+                    sps=f"{metrics['steps_per_s']:.0f}",
+                )
                 if callback is not None and callback(self, metrics) is False:
                     break
             if self.out_dir:

@@ -209,7 +209,7 @@ def test_every_algo_trains_saves_loads_and_predicts(tmp_path):
 
 
 def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
-    finished = []  # per update (10 steps of each env): the mean return, nan if none ended
+    # per update (10 steps of each env): the mean return, nan if none ended
     with Trainer(
         "hopper-4x1",
         "mat",
@@ -219,9 +219,16 @@ def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
         num_minibatches=1,
         env_options={"episode_limit": 25},
     ) as trainer:
-        trainer.learn(80, callback=lambda _, metrics: finished.append(metrics["return_mean"]))
+        metrics = []
+        trainer.learn(80, callback=lambda _, m: metrics.append(m))
+    finished = [m["return_mean"] for m in metrics]
     assert np.isnan(finished).tolist() == [True, True, False, True]  # episodes end at step 25
-    shown = re.findall(r"ret=([^,\]]*)", capsys.readouterr().err)
+    bar = capsys.readouterr().err
+    shown = re.findall(r"ret=([^,\]]*)", bar)
     assert shown[0] == "-" and "nan" not in shown
     latest = [r for r in finished if not np.isnan(r)][-1]
     assert shown[-1] == f"{latest:.1f}"  # held through the updates where none ended
+    shown_rewards = re.findall(r"rew=([^,\]]*)", bar)  # every update, from the first
+    per_step = [f"{m['reward_per_step']:.3g}" for m in metrics]
+    assert list(dict.fromkeys(shown_rewards)) == list(dict.fromkeys(per_step))
+    assert 0 < max(m["reward_per_step"] for m in metrics) <= 1  # dm_control rewards: 0..1
