@@ -16,6 +16,7 @@ import torch
 
 FORMAT = "mat-checkpoint"
 VERSION = 1
+CHECKPOINT_NAME = "checkpoint.pt"  # a run directory's checkpoint
 
 
 class CheckpointError(ValueError):
@@ -81,11 +82,11 @@ def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
 
 def _directory_hint(directory: Path) -> str:
     """What the user probably meant by a directory: a run's checkpoint, or a bundle's source."""
-    if (directory / "checkpoint.pt").is_file():
-        return f"pass the run's checkpoint, {directory / 'checkpoint.pt'}"
+    if (directory / CHECKPOINT_NAME).is_file():
+        return f"pass the run's checkpoint, {directory / CHECKPOINT_NAME}"
     if (directory / "manifest.json").is_file():
         return (
             "it is an ONNX bundle (load it with mat_runtime.Policy); pass the checkpoint it was "
             "exported from"
         )
-    return "pass the checkpoint.pt that `mat train` wrote"
+    return f"pass the {CHECKPOINT_NAME} that `mat train` wrote"

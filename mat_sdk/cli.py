@@ -351,13 +351,14 @@ def finetune(
     """
     import numpy as np
 
+    from mat_sdk.checkpoint import CHECKPOINT_NAME
     from mat_sdk.finetune import finetune as run
 
     fault_map = parse_faults(faults)
     label = "-".join(f"{k}_{v}" for k, v in fault_map.items()) or (env_id or "same")
     out = Path(out_dir or f"runs/finetune-{label.replace(':', '_')}")
     again = f"mat finetune {checkpoint} --out {out} --steps {steps} --resume"
-    with resumable(out / "checkpoint.pt", again):
+    with resumable(out / CHECKPOINT_NAME, again):
         result = run(
             checkpoint,
             env=env_id,

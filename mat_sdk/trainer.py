@@ -25,12 +25,12 @@ import numpy as np
 import torch
 
 from mat_sdk import checkpoint, envs
+from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.ppo import gae, ppo_loss
 from mat_sdk.run_log import RunLog
 
-CHECKPOINT_NAME = "checkpoint.pt"
 ROLLOUT_BACKENDS = ("torch", "onnx")
 
 
