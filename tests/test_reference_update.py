@@ -40,3 +40,20 @@ def test_losses_and_gradients_equal_the_official_style_reference():
             assert torch.allclose(mine, param.grad, atol=1e-6, rtol=1e-4), name
             checked += 1
         assert checked == len(ours_grads)
+
+
+def test_official_style_action_loop_matches_our_cached_decode():
+    """`mat bench runtime`'s baseline chooses the actions our policy chooses."""
+    with Trainer("cheetah-6x1", "mat", num_envs=1, rollout_length=1, seed=0) as trainer:
+        policy = trainer.policy.eval()
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    for n in (1, 6, 17):
+        obs = torch.randn(2, n, policy.cfg.obs_dim)
+        reference = OfficialStyleMAT(copy.deepcopy(policy), n)
+        theirs = reference.act(obs)
+        ours = policy.act(obs, deterministic=True)
+        for mine, official in zip(ours, theirs, strict=True):
+            assert mine.shape == official.shape
+            assert torch.allclose(mine, official, atol=1e-5), n

@@ -1,10 +1,12 @@
-"""An update step written the way the official MAT code writes it: the benchmark's baseline.
+"""A MAT run the way the official code runs it: the baseline of `mat bench train` (an update
+step) and `mat bench runtime` (a control step).
 
 Same parameters (and names) as `mat_sdk.model.MAT`, so one state dict drives both, and the
-same math, so a test holds their losses and gradients equal. What differs is how it runs, as
-in the official `ma_transformer.py` / `mat_trainer.py`: attention as explicit matmul + masked
-softmax against a fixed `tril` buffer, validated `torch.distributions`, the PPO loss
-assembled step by step, and a for-loop Adam. Not used for training.
+same math, so tests hold their losses, gradients and actions equal. What differs is how it
+runs, as in the official `ma_transformer.py` / `transformer_act.py` / `mat_trainer.py`:
+attention as explicit matmul + masked softmax against a fixed `tril` buffer, validated
+`torch.distributions`, actions chosen by re-running the whole decoder once per agent, the PPO
+loss assembled step by step, and a for-loop Adam. Not used for training.
 """
 
 from __future__ import annotations
@@ -58,28 +60,57 @@ def _swap_attention(module: nn.Module, n_agent: int) -> None:
 
 
 class OfficialStyleMAT(nn.Module):
-    """Our MAT's parameters, run through the official code's forward pass."""
+    """Our MAT's parameters, run through the official code's forward pass and action loop."""
 
     def __init__(self, ours: MAT, n_agent: int):
         super().__init__()
         self.ours = ours
         _swap_attention(self.ours, n_agent)
 
-    def forward(self, obs: Tensor, actions: Tensor):
-        enc, dec = self.ours.encoder, self.ours.decoder
+    def encode(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """The official `Encoder.forward`: representations and values."""
+        enc = self.ours.encoder
         x = enc.ln(enc.obs_encoder(obs))
         for block in enc.blocks:
             x = block.ln1(x + block.attn(x, x, x))
             x = block.ln2(x + block.mlp(x))
-        rep, values = x, enc.head(x)
-        h = dec.ln(dec.action_encoder(self.ours.shift_tokens(actions)))
+        return x, enc.head(x)
+
+    def decode(self, shifted: Tensor, rep: Tensor) -> Tensor:
+        """The official `Decoder.forward`: action means at every position, causally."""
+        dec = self.ours.decoder
+        h = dec.ln(dec.action_encoder(shifted))
         for block in dec.blocks:
             h = block.ln1(h + block.attn1(h, h, h))
             h = block.ln2(rep + block.attn2(key=h, value=h, query=rep))
             h = block.ln3(h + block.mlp(h))
-        mean = dec.head(h)
-        std = torch.sigmoid(self.ours.log_std) * 0.5
-        return mean, std, values
+        return dec.head(h)
+
+    def std(self) -> Tensor:
+        return torch.sigmoid(self.ours.log_std) * 0.5
+
+    def forward(self, obs: Tensor, actions: Tensor):
+        rep, values = self.encode(obs)
+        return self.decode(self.ours.shift_tokens(actions), rep), self.std(), values
+
+    @torch.no_grad()
+    def act(self, obs: Tensor, deterministic: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+        """`get_actions` with `continuous_autoregreesive_act`: the whole decoder re-run over all
+        n positions once per agent, a validated `Normal` and its log-prob per agent."""
+        rep, values = self.encode(obs)
+        batch, n, action_dim = *obs.shape[:2], self.ours.cfg.action_dim
+        shifted = obs.new_zeros(batch, n, action_dim)
+        actions = obs.new_zeros(batch, n, action_dim)
+        log_probs = torch.zeros_like(actions)
+        for i in range(n):
+            mean = self.decode(shifted, rep)[:, i, :]
+            distri = torch.distributions.Normal(mean, self.std())
+            action = mean if deterministic else distri.sample()
+            actions[:, i, :] = action
+            log_probs[:, i, :] = distri.log_prob(action)
+            if i + 1 < n:
+                shifted[:, i + 1, :] = action
+        return actions, log_probs, values
 
 
 def official_loss(model: OfficialStyleMAT, value_norm, mb: dict[str, Tensor], cfg) -> Tensor:
