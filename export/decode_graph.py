@@ -261,10 +261,6 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
     batch = g.op("Shape", rep, end=1)
     row = g.op("Concat", batch, g.const([1, cfg.n_embd], "row", np.int64), axis=0)
     first = g.op("Expand", g.const(tokens[:1][None], "first"), row)  # agent 0's: the start
-    dims = _cache_dims(cfg)
-    no_agents = g.op("Concat", batch, g.const([*dims[:-1], 0, dims[-1]], "cache", np.int64), axis=0)
-    zero = numpy_helper.from_array(np.zeros(1, np.float32))
-    empty = g.op("ConstantOfShape", no_agents, value=zero)
     caches = [
         f"{b}.{attn}.{kind}"
         for b in range(cfg.n_block)
@@ -273,9 +269,11 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
     ]
     step = _AgentStep(cfg, discrete, embed, tokens[1:])
     if agents is None:
-        outputs = _loop(g, step, per_agent, widths, batch, first, [empty] * len(caches), caches)
-    else:
-        outputs = _unrolled(g, step, per_agent, first, [empty] * len(caches), agents)
+        empty = [_empty_cache(g, cfg, batch)] * len(caches)
+        outputs = _loop(g, step, per_agent, widths, batch, first, empty, caches)
+    else:  # the first agent's attentions see only its own entry: streamed, no cache needed
+        empty = None if _streamed(cfg) else [_empty_cache(g, cfg, batch)] * len(caches)
+        outputs = _unrolled(g, step, per_agent, first, empty, agents)
     if discrete:
         actions = g.op(
             "Unsqueeze", g.op("Cast", outputs["chosen"], to=FLOAT), g.const([2], "axis2", np.int64)
@@ -283,6 +281,14 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
         return {"actions": actions, "logits": _mask(g, outputs["logits"])}
     mean = g.linear(outputs["hidden"], "decoder.head.3")
     return {"actions": g.op("Add", mean, shift), "mean": mean}
+
+
+def _empty_cache(g: GraphBuilder, cfg, batch: str) -> str:
+    """A cache holding no agents yet: [B, 0, C] (stream) or [B, heads, 0, head width]."""
+    dims = _cache_dims(cfg)
+    no_agents = g.op("Concat", batch, g.const([*dims[:-1], 0, dims[-1]], "cache", np.int64), axis=0)
+    zero = numpy_helper.from_array(np.zeros(1, np.float32))
+    return g.op("ConstantOfShape", no_agents, value=zero)
 
 
 def _normalised_tokens(policy: MAT) -> np.ndarray:
@@ -312,18 +318,25 @@ class _AgentStep:
             return {"chosen": 0, "logits": self.cfg.action_dim}
         return {"hidden": self.cfg.n_embd}
 
-    def __call__(self, g: GraphBuilder, mine: dict, x: str, past: list[str], last: bool = False):
+    def __call__(
+        self, g: GraphBuilder, mine: dict, x: str, past: list[str] | None, last: bool = False
+    ):
         """`mine`: this agent's [B, 1, ..] slices of the per-agent tensors; `x`: its normalised
-        token. -> (the next agent's token, None when `last`; present caches; `outputs()`)."""
+        token; `past`: the caches of the agents before it, None for the team's first agent
+        (streamed attention only). -> (the next agent's token, None when `last`; present
+        caches; `outputs()`)."""
         cfg, w = self.cfg, g.weights
         present: list[str] = []
         kinds = len(_cache_kinds(cfg))  # caches per attention
         for b in range(cfg.n_block):
-            block, cache = f"decoder.blocks.{b}", past[2 * kinds * b : 2 * kinds * (b + 1)]
-            attended = _attention(g, cfg, x, f"{block}.attn1", cache[:kinds], present)
+            block, past1, past2 = f"decoder.blocks.{b}", None, None
+            if past is not None:
+                cache = past[2 * kinds * b : 2 * kinds * (b + 1)]
+                past1, past2 = cache[:kinds], cache[kinds:]
+            attended = _attention(g, cfg, x, f"{block}.attn1", past1, present)
             x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
             query = mine[f"query2.{b}"]
-            attended = _attention(g, cfg, x, f"{block}.attn2", cache[kinds:], present, query)
+            attended = _attention(g, cfg, x, f"{block}.attn2", past2, present, query)
             x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
             x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
         hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
@@ -455,9 +468,13 @@ def _queries(w: dict, cfg, attn: str) -> tuple[np.ndarray, np.ndarray]:
 def _attention(g: GraphBuilder, cfg, stream, attn, past, present, query=None) -> str:
     """One agent's decoder attention over the agents so far, its own entry `stream` [B, 1, C]
     included: the output projection of the mixed values. `query`: [B, 1, ..] precomputed
-    (the second attention's), else projected from `stream`. Appends the caches to `present`."""
+    (the second attention's), else projected from `stream`. `past` None: no agents before
+    (streamed only). Appends the caches to `present`."""
     heads = cfg.n_head
     if _streamed(cfg):
+        if past is None:  # the first agent: attending to its own entry alone returns it
+            present.append(stream)
+            return g.dense(stream, *_stream_output(g.weights, attn, heads), f"{attn}.out")
         if query is None:
             query = g.dense(stream, *_queries(g.weights, cfg, attn), f"{attn}.queries")
         return _stream_attention(g, query, stream, attn, past, heads, present)
