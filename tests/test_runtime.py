@@ -136,6 +136,19 @@ def test_seeds_make_sampling_reproducible(bundles):
     np.testing.assert_array_equal(policy.act(obs), policy.act(obs.astype(np.float32)))
 
 
+def test_results_are_the_callers_own(bundles):
+    """The runtime reuses its buffers between calls; what it returned must not change."""
+    policy = Policy.load(bundles["mat"][1])
+    obs = _obs(policy, 6)
+    for clip in (True, False):
+        actions, extra = policy.act(obs, deterministic=False, seed=1, clip=clip, return_values=True)
+        kept = (actions.copy(), {name: value.copy() for name, value in extra.items()})
+        policy.act(3 * obs, deterministic=False, seed=2, clip=clip, return_values=True)
+        np.testing.assert_array_equal(actions, kept[0])
+        for name, value in extra.items():
+            np.testing.assert_array_equal(value, kept[1][name], err_msg=name)
+
+
 def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
     policy = Policy.load(bundles["mat"][1])
     discrete = Policy.load(bundles["mat-discrete"][1])
