@@ -6,7 +6,7 @@ same math, so tests hold their losses, gradients and actions equal. What differs
 runs, as in the official `ma_transformer.py` / `transformer_act.py` / `mat_trainer.py`:
 attention as explicit matmul + masked softmax against a fixed `tril` buffer, validated
 `torch.distributions`, actions chosen by re-running the whole decoder once per agent, the PPO
-loss assembled step by step, and a for-loop Adam. Not used for training.
+loss assembled step by step, and torch's default Adam (a for-loop on CPU). Not used for training.
 """
 
 from __future__ import annotations

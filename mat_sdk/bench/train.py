@@ -34,16 +34,15 @@ def _our_step(trainer: Trainer, policy, optimizer, loss_fn):
 
 def _reference_step(trainer: Trainer):
     model = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents).to(trainer.device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5, foreach=False)
+    # torch's defaults, as the official code has them: for-loops on CPU, foreach on CUDA
+    optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5)
     value_norm = ValueNorm(device=trainer.device)
 
     def step(mb):
         loss = official_loss(model, value_norm, mb, trainer.config)
         optimizer.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(
-            model.parameters(), trainer.config.max_grad_norm, foreach=False
-        )
+        torch.nn.utils.clip_grad_norm_(model.parameters(), trainer.config.max_grad_norm)
         optimizer.step()
 
     return step
