@@ -82,7 +82,9 @@ def envs() -> None:
 
     \b
     swimmer-N works for any N >= 3 (N - 1 agents); MaMuJoCo scenarios are
-    available as mamujoco:<Scenario>-<conf>, e.g. mamujoco:HalfCheetah-6x1.
+    available as mamujoco:<Scenario>-<conf>, e.g. mamujoco:HalfCheetah-6x1;
+    coordination-N (any N >= 2) is a one-step discrete game that MAT solves in
+    seconds (act: its number of choices).
     """
     from mat_sdk.envs import list_envs
 

@@ -16,7 +16,7 @@ import math
 import numbers
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -264,8 +264,13 @@ class Trainer:
         results = self.policy.evaluate(permute_agents(obs, order), permute_agents(actions, order))
         return tuple(permute_agents(r, inverse) for r in results)
 
-    def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """Actions for raw observations [n, obs_dim] or [B, n, obs_dim] (numpy)."""
+    def predict(self, obs, deterministic: bool = True):
+        """Actions for raw observations: an array [n, obs_dim] or [B, n, obs_dim] -> an array
+        [.., n, act_dim] (discrete: [.., n, 1] choice indices); or a PettingZoo obs dict
+        {agent: obs} -> an action dict ready for `env.step` (each agent's own action size;
+        discrete: an int)."""
+        if isinstance(obs, Mapping):
+            return self._predict_by_agent(obs, deterministic)
         obs = np.asarray(obs, dtype=np.float32)
         single = obs.ndim == 2
         batch = obs[None] if single else obs
@@ -276,6 +281,17 @@ class Trainer:
             )
         actions = self._as_loaded().act(batch, deterministic, self.generator)
         return actions[0] if single else actions
+
+    def _predict_by_agent(self, obs: Mapping, deterministic: bool) -> dict:
+        agents = list(self.env.agents)
+        if set(obs) != set(agents):
+            raise ValueError(
+                f"obs must have one entry per agent of {self.env.env_id}: {agents}; got {list(obs)}"
+            )
+        actions = self.predict(np.stack([np.asarray(obs[a]) for a in agents]), deterministic)
+        if self.env.action_type == "discrete":
+            return {a: int(actions[i, 0]) for i, a in enumerate(agents)}
+        return {a: actions[i, : self.env.act_dims[i]] for i, a in enumerate(agents)}
 
     # ---------------------------------------------------------------- training
     def learn(

@@ -1,5 +1,6 @@
 """Multi-agent robots: PettingZoo API, decomposition, seeding, faults, bad input."""
 
+import gymnasium
 import mujoco
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ ROBOT_IDS = [
 ]
 
 
-@pytest.mark.parametrize("env_id", ROBOT_IDS)
+@pytest.mark.parametrize("env_id", [*ROBOT_IDS, "coordination-3"])
 def test_parallel_api(env_id):
     parallel_api_test(envs.make(env_id, seed=0), num_cycles=40)
 
@@ -189,6 +190,28 @@ def test_array_team_refuses_bad_actions_and_wrappers_check_once(env_id, monkeypa
         vec.reset()
         vec.step(np.zeros((2, team.n_agents, team.act_dim)))
     assert len(calls) == 1
+
+
+@pytest.mark.parametrize("choice", [3, -1, 0.5])
+def test_discrete_actions_must_be_choices_on_every_path(choice):
+    team = envs.make_team("coordination-3", seed=0)
+    team.reset(seed=0)
+    actions = np.array([[0.0], [choice], [2.0]])
+    with pytest.raises(ValueError, match=r"agent_1: action must be a choice 0\.\.2"):
+        team.step(actions)
+    with envs.make_vec("coordination-3", num_envs=2, seed=0) as vec:
+        vec.reset()
+        with pytest.raises(ValueError, match=r"env 1, agent_1: action must be a choice 0\.\.2"):
+            vec.step(np.stack([np.zeros((3, 1)), actions]))
+    env = envs.make("coordination-3", seed=0)
+    env.reset(seed=0)
+    assert env.action_space("agent_1") == gymnasium.spaces.Discrete(3)
+    with pytest.raises(ValueError, match=r"agent_1: action must be a choice 0\.\.2"):
+        env.step({"agent_0": 0, "agent_1": choice, "agent_2": 2})
+    target = int(env.state().argmax())
+    others = [option for option in range(3) if option != target]
+    rewards = env.step({"agent_0": target, "agent_1": others[0], "agent_2": np.int64(others[1])})[1]
+    assert rewards == dict.fromkeys(["agent_0", "agent_1", "agent_2"], 1.0)
 
 
 def test_out_of_range_actions_are_clipped():

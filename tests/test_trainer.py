@@ -208,6 +208,26 @@ def test_every_algo_trains_saves_loads_and_predicts(tmp_path):
             assert loaded.predict(obs[None]).shape == (1, 2, 2)
 
 
+@pytest.mark.parametrize("env_id", ["humanoid-limbs", "coordination-3"])
+def test_predict_takes_and_gives_pettingzoo_dicts(env_id):
+    """obs dict in, an action dict `env.step` accepts out: each agent's own action size
+    (humanoid pads arms to the legs' 6), or an int choice."""
+    env = envs.make(env_id, seed=0)
+    obs, _ = env.reset(seed=0)
+    with Trainer(env_id, "mat", **TINY) as trainer:
+        actions = trainer.predict(obs)
+        by_array = trainer.predict(np.stack([obs[agent] for agent in env.agents]))
+        with pytest.raises(ValueError, match="one entry per agent"):
+            trainer.predict({agent: obs[agent] for agent in env.agents[1:]})
+    assert list(actions) == env.agents
+    for row, agent in enumerate(env.agents):
+        assert env.action_space(agent).contains(actions[agent])
+        np.testing.assert_array_equal(
+            np.ravel(actions[agent]), by_array[row, : np.size(actions[agent])]
+        )
+    env.step(actions)
+
+
 def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
     # per update (10 steps of each env): the mean return, nan if none ended
     with Trainer(

@@ -16,6 +16,7 @@ actuators produce nothing) so the agent count drops. Remaining agents keep their
 their one-hot ids, so a policy trained on the full robot still recognises them.
 Actions are in [-1, 1] (mapped onto each actuator's control range); finite values outside
 are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueError`.
+`coordination-N`, a small discrete game, takes choices 0..N-1 instead (`Discrete(N)`).
 """
 
 from __future__ import annotations
@@ -96,16 +97,17 @@ def make_vec(
 def list_envs() -> list[dict[str, Any]]:
     """One row per env id: agents, obs size, action size, episode limit, description."""
     rows = []
-    for env_id in [*env_ids(), f"{_MAMUJOCO}HalfCheetah-6x1"]:
+    for env_id in [*env_ids(), f"{_MAMUJOCO}HalfCheetah-6x1", "coordination-3"]:
         team = _build_team(env_id)
+        spec = getattr(team, "spec", None)
         rows.append(
             {
                 "id": env_id,
                 "agents": team.n_agents,
                 "obs": team.obs_dim,
-                "act": team.act_dim,
+                "act": team.n_actions,  # discrete: the number of choices
                 "episode_limit": team.episode_limit,
-                "about": getattr(getattr(team, "spec", None), "description", "Gymnasium-Robotics"),
+                "about": spec.description if spec else team.description,
             }
         )
     return rows

@@ -14,6 +14,22 @@ def checked_episode_limit(given: int | None, default: int) -> int:
     return int(given)
 
 
+def invalid_action(
+    actions: np.ndarray, action_type: str, n_actions: int
+) -> tuple[tuple[int, ...], str] | None:
+    """The first invalid action in `actions [..., act_dim]`: its index (all axes but the last)
+    and the problem, or None. Invalid: NaN or inf; for discrete teams, anything but a whole
+    choice 0..n_actions - 1 (continuous values are clipped instead)."""
+    valid = np.isfinite(actions).all(axis=-1)
+    problem = "action contains NaN or inf"
+    if valid.all() and action_type == "discrete":
+        valid = ((actions == np.floor(actions)) & (actions >= 0) & (actions < n_actions)).all(-1)
+        problem = f"action must be a choice 0..{n_actions - 1}"
+    if valid.all():
+        return None
+    return tuple(int(i) for i in np.argwhere(~valid)[0]), problem
+
+
 class ArrayTeam:
     """A team stepped with arrays: actions `[n_agents, act_dim]` in, obs `[n_agents, obs_dim]`,
     the shared reward and the episode flags out.
@@ -28,12 +44,15 @@ class ArrayTeam:
     act_dim: int
     agents: list[str]
     env_id: str
+    action_type: str
+    n_actions: int  # continuous: act_dim; discrete: the number of choices
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
         """Apply `actions [n_agents, act_dim]`; returns obs, reward, terminated, truncated.
 
-        A wrong shape, NaN or inf raises `ValueError` naming the agent. Continuous teams clip
-        finite values to [-1, 1] and ignore entries past an agent's own action size.
+        A wrong shape, NaN or inf, or (discrete) anything but a choice 0..n_actions - 1
+        raises `ValueError` naming the agent. Continuous teams clip finite values to [-1, 1]
+        and ignore entries past an agent's own action size.
         """
         return self.advance(self.check_actions(actions))
 
@@ -45,9 +64,10 @@ class ArrayTeam:
                 f"actions have shape {array.shape}, expected (n_agents, act_dim) = "
                 f"({self.n_agents}, {self.act_dim}) for {self.env_id}"
             )
-        if not np.isfinite(array).all():
-            row = int(np.flatnonzero(~np.isfinite(array).all(axis=1))[0])
-            raise ValueError(f"{self.agents[row]}: action contains NaN or inf: {array[row]}")
+        invalid = invalid_action(array, self.action_type, self.n_actions)
+        if invalid:
+            (row,), problem = invalid
+            raise ValueError(f"{self.agents[row]}: {problem}, got {array[row]}")
         return array
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:

@@ -22,6 +22,7 @@ _ID = re.compile(r"coordination-(\d+)$")
 
 class CoordinationGame(ArrayTeam):
     action_type = "discrete"
+    description = "discrete test game: N agents pick from N options, all different (N >= 2)"
 
     def __init__(
         self, env_id: str, faults: Mapping[str, str] | None = None, *, seed: int | None = None, **_

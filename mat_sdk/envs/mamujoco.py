@@ -24,6 +24,7 @@ class MaMuJoCoTeam(ArrayTeam):
     """A MaMuJoCo scenario with the array API of `RobotTeam` (obs padded to one size)."""
 
     action_type = "continuous"
+    description = "Gymnasium-Robotics"
 
     def __init__(
         self,

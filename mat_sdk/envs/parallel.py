@@ -9,12 +9,16 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from mat_sdk.envs.base import invalid_action
+
 
 class TeamParallelEnv(ParallelEnv):
     """A PettingZoo parallel env over any `ArrayTeam` (robot, game or MaMuJoCo scenario).
 
-    Every agent gets the shared team reward. Actions outside [-1, 1] are clipped; a missing
-    or unknown agent, a wrong shape, NaN or inf raises `ValueError` naming the agent.
+    Every agent gets the shared team reward. Continuous actions are `Box(-1, 1)` arrays of the
+    agent's own size, clipped when outside; discrete ones (games) are `Discrete(n)` choices,
+    an int. A missing or unknown agent, a wrong shape, NaN or inf, or a choice out of range
+    raises `ValueError` naming the agent.
     """
 
     metadata: ClassVar[dict] = {
@@ -29,8 +33,11 @@ class TeamParallelEnv(ParallelEnv):
         self.possible_agents = list(team.agents)
         self.agents: list[str] = []
         self._obs_space = spaces.Box(-np.inf, np.inf, (team.obs_dim,), np.float32)
+        self._discrete = team.action_type == "discrete"
         self._act_spaces = {
-            name: spaces.Box(-1.0, 1.0, (int(dim),), np.float32)
+            name: spaces.Discrete(team.n_actions)
+            if self._discrete
+            else spaces.Box(-1.0, 1.0, (int(dim),), np.float32)
             for name, dim in zip(team.agents, team.act_dims, strict=True)
         }
         self.state_space = spaces.Box(-np.inf, np.inf, (team.state_dim,), np.float32)
@@ -62,11 +69,14 @@ class TeamParallelEnv(ParallelEnv):
             raise ValueError(f"no action for agent(s) {missing}; every agent must act each step")
         for row, agent in enumerate(self.agents):
             action = np.asarray(actions[agent], dtype=np.float64)
-            expected = self._act_spaces[agent].shape
-            if action.shape != expected:
-                raise ValueError(f"{agent}: action has shape {action.shape}, expected {expected}")
-            if not np.isfinite(action).all():
-                raise ValueError(f"{agent}: action contains NaN or inf: {action}")
+            expected = self._act_spaces[agent].shape or (1,)  # a choice: an int
+            if action.shape != expected and not (self._discrete and action.shape == ()):
+                shape = "an int" if self._discrete else f"shape {expected}"
+                raise ValueError(f"{agent}: action has shape {action.shape}, expected {shape}")
+            action = action.reshape(expected)
+            invalid = invalid_action(action, self.team.action_type, self.team.n_actions)
+            if invalid:
+                raise ValueError(f"{agent}: {invalid[1]}, got {action}")
             self._actions[row, : expected[0]] = action
         obs, reward, terminated, truncated = self.team.advance(self._actions)  # checked above
         agents = self.agents

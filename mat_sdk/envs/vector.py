@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from mat_sdk.envs.base import invalid_action
+
 _FIELDS = {  # name: (shape after [num_envs], dtype)
     "actions": (("n", "act"), np.float64),
     "obs": (("n", "obs"), np.float32),
@@ -219,10 +221,10 @@ class VecTeam:
                 f"actions have shape {actions.shape}, expected (num_envs, n_agents, act_dim) = "
                 f"{expected}"
             )
-        finite = np.isfinite(actions).all(axis=2)
-        if not finite.all():
-            env, agent = np.argwhere(~finite)[0]
-            raise ValueError(f"env {env}, {self.agents[agent]}: action contains NaN or inf")
+        invalid = invalid_action(actions, self.action_type, self.n_actions)
+        if invalid:
+            (env, agent), problem = invalid
+            raise ValueError(f"env {env}, {self.agents[agent]}: {problem}")
         b = self._buffers
         b.actions[:] = actions
         self._run("step", [()] * (self.workers + 1))
