@@ -103,6 +103,16 @@ def _us(seconds: float) -> str:
     return f"{seconds * 1e6:,.0f}"
 
 
+def _scaling(bundle: Path, obs_dim: int, seconds: float) -> tuple[float, float]:
+    """p50 of the runtime at n = 64 and n = 256, interleaved round by round, so a change in
+    the machine's speed between the table's rows cannot skew their ratio."""
+    runtime = Policy.load(bundle, threads=1)
+    rng = np.random.default_rng(0)
+    obs = {n: rng.standard_normal((n, obs_dim)).astype(np.float32) for n in (64, 256)}
+    times = latencies({n: lambda x=x: runtime.act(x) for n, x in obs.items()}, seconds)
+    return float(np.median(times[64])), float(np.median(times[256]))
+
+
 def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
     torch.set_num_threads(1)
     rows, scaling = [], {}
@@ -114,8 +124,6 @@ def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
                 obs = np.random.default_rng(0).standard_normal((batch, n, policy.cfg.obs_dim))
                 times = latencies(_variants(bundle, policy, obs.astype(np.float32)), seconds)
                 p50 = {name: float(np.median(t)) for name, t in times.items()}
-                if batch == 1:
-                    scaling[(label, n)] = p50["runtime"]
                 rows.append(
                     {
                         "model": label,
@@ -132,8 +140,11 @@ def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
                         "(a) vs (d)": f"{p50['step graph'] / p50['runtime']:.1f}x",
                     }
                 )
+            if 64 in agent_counts and 256 in agent_counts:
+                scaling[label] = _scaling(bundle, policy.cfg.obs_dim, seconds)
     print_table(rows, f"One control step, one thread — {machine()}")
-    if 64 in agent_counts and 256 in agent_counts:
-        for label in SIZES:
-            ratio = scaling[(label, 256)] / scaling[(label, 64)]
-            print(f"{label}: runtime t(256) / t(64) = {ratio:.2f}")
+    for label, (t64, t256) in scaling.items():
+        print(
+            f"{label}: runtime t(256) / t(64) = {t256 / t64:.2f} "
+            f"(interleaved: {_us(t64)} and {_us(t256)} µs)"
+        )
