@@ -115,7 +115,10 @@ def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None
     from mat_sdk.envs import make
 
     env = make(env_id, faults=parse_faults(faults), seed=seed)
-    rng = np.random.default_rng(seed)
+    # uniform over each agent's action space, from streams independent of the env's own
+    streams = np.random.SeedSequence([seed, 1]).generate_state(len(env.possible_agents))
+    for agent, stream in zip(env.possible_agents, streams, strict=True):
+        env.action_space(agent).seed(int(stream))
     env.reset(seed=seed)
     click.echo(f"{env_id}: agents {env.agents}, obs {env.observation_space(env.agents[0]).shape}")
     episode_return, returns = 0.0, []
@@ -124,7 +127,7 @@ def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None
             returns.append(episode_return)
             episode_return = 0.0
             env.reset()
-        actions = {a: rng.uniform(-1, 1, env.action_space(a).shape) for a in env.agents}
+        actions = {a: env.action_space(a).sample() for a in env.agents}
         _, rewards, _, _, _ = env.step(actions)
         episode_return += next(iter(rewards.values()))
     returns.append(episode_return)

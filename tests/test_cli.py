@@ -1,9 +1,11 @@
 """The `mat` command line: tables, one-line errors, non-zero exit codes."""
 
+import ast
 import re
 from pathlib import Path
 
 import click
+import numpy as np
 from click.testing import CliRunner
 
 from mat_sdk.cli import main
@@ -29,6 +31,17 @@ def test_rollout_runs_a_random_team_with_a_fault():
     )
     assert result.exit_code == 0, result.output
     assert "episode returns" in result.output
+
+
+def test_rollout_plays_the_discrete_game_at_random():
+    """Random choices: the leader is right 1/3 of the time and all differ 2/9 of those; a
+    team whose actions are not choices, or whose leader shares the env's random stream, is
+    off that rate."""
+    result = CliRunner().invoke(main, ["rollout", "coordination-3", "--steps", "300"])
+    assert result.exit_code == 0, result.output
+    returns = ast.literal_eval(result.output.split("episode returns ")[1].strip())
+    assert len(returns) == 300 and set(returns) <= {0.0, 1.0}
+    assert 0.02 < np.mean(returns) < 0.15
 
 
 def test_user_mistakes_give_one_line_and_exit_code():
