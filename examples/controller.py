@@ -49,7 +49,10 @@ def main() -> None:
         begin = time.perf_counter()
         actions = policy.act(obs)
         act_times.append(time.perf_counter() - begin)
-        obs, reward, terminated, truncated = team.step(actions)
+        # discrete policies return one choice per agent; the team takes [n_agents, 1]
+        obs, reward, terminated, truncated = team.step(
+            actions[:, None] if policy.discrete else actions
+        )
         episode_return += reward
         if terminated or truncated:
             returns.append(episode_return)
@@ -72,7 +75,10 @@ def main() -> None:
     print(f"{steps} steps in {elapsed:.2f} s: {steps / elapsed:.1f} Hz (target {args.rate:g} Hz)")
     p50, p99 = np.median(micros), np.percentile(micros, 99)
     print(f"act: p50 {p50:.0f} µs, p99 {p99:.0f} µs, max {micros.max():.0f} µs; late ticks: {late}")
-    finished = ", ".join(f"{r:.1f}" for r in returns) or "none finished"
+    if len(returns) > 10:  # e.g. a one-step game
+        finished = f"mean {np.mean(returns):.2f} ± {np.std(returns):.2f} over {len(returns)}"
+    else:
+        finished = ", ".join(f"{r:.1f}" for r in returns) or "none finished"
     print(f"episode returns: {finished}; current episode so far: {episode_return:.1f}")
     assert "torch" not in {m for m, mod in sys.modules.items() if mod}
 

@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -244,6 +245,19 @@ def test_one_policy_serves_several_threads(bundles):
     for thread in threads:
         thread.join()
     assert not failures
+
+
+@pytest.mark.parametrize("name", ["mat", "mat-discrete"])
+def test_controller_example_runs_without_torch(bundles, name):
+    """examples/controller.py (which blocks torch itself) on a robot and on the game."""
+    script = Path(__file__).parents[1] / "examples" / "controller.py"
+    args = [str(bundles[name][1]), "--rate", "50", "--seconds", "0.4"]
+    result = subprocess.run(
+        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert "20 steps in" in result.stdout and "act: p50" in result.stdout, result.stdout
+    assert "episode returns:" in result.stdout
 
 
 def test_runtime_works_where_torch_cannot_be_imported(bundles):
