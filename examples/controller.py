@@ -26,7 +26,9 @@ from mat_sdk.envs import make_team
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("bundle", help="directory written by `mat export`")
-    parser.add_argument("--env", help="env id (default: the one the policy was trained on)")
+    parser.add_argument(
+        "--env", help="env id (default: the robot the policy was trained on, faults included)"
+    )
     parser.add_argument("--rate", type=float, default=100.0, help="control rate in Hz")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to run")
     parser.add_argument("--fault", action="append", default=[], metavar="NAME=zero|remove")
@@ -40,7 +42,10 @@ def main() -> None:
 
     policy = Policy.load(args.bundle, threads=1)
     faults = dict(f.split("=", 1) for f in args.fault)
-    team = make_team(args.env or policy.env_id, faults=faults or None)
+    if args.env is None:  # the trained robot: its faults (unless --fault) and env options
+        team = make_team(policy.env_id, faults or policy.env_faults, **policy.env_options)
+    else:
+        team = make_team(args.env, faults or None)
     obs = team.reset(seed=0)
     period = 1.0 / args.rate
     act_times, late, episode_return, returns = [], 0, 0.0, []
@@ -71,7 +76,7 @@ def main() -> None:
     elapsed = time.perf_counter() - start
     steps = len(act_times)
     micros = np.array(act_times) * 1e6
-    print(f"{policy}")
+    print(f"{policy} on {team.env_id} with agents {team.agents}")
     print(f"{steps} steps in {elapsed:.2f} s: {steps / elapsed:.1f} Hz (target {args.rate:g} Hz)")
     p50, p99 = np.median(micros), np.percentile(micros, 99)
     print(f"act: p50 {p50:.0f} µs, p99 {p99:.0f} µs, max {micros.max():.0f} µs; late ticks: {late}")

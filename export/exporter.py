@@ -254,7 +254,7 @@ def _finish_graph(path: Path, manifest: dict) -> None:
 
 
 def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
-    env = payload["config"]["env"]
+    env, train = payload["config"]["env"], payload["config"]["train"]
     token = cfg.action_dim + 1 if cfg.action_type == "discrete" else cfg.action_dim
     return {
         "format": FORMAT,
@@ -277,7 +277,9 @@ def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "trained": cfg.n_agents,
             "names": env.get("agents"),
         },
-        "env_id": env.get("id"),
+        "env_id": env.get("id"),  # with the faults and options the policy was trained under
+        "env_faults": dict(train.get("faults") or {}),
+        "env_options": dict(train.get("env_options") or {}),
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
         if cfg.algo == "mat"
         else [],

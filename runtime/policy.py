@@ -84,6 +84,9 @@ class Policy:
         action = manifest["action"]
         self.algo: str = manifest["algo"]
         self.env_id: str | None = manifest.get("env_id")
+        # the robot it was trained on: `mat_sdk.envs.make_team(env_id, env_faults, **env_options)`
+        self.env_faults: dict[str, str] = manifest.get("env_faults", {})
+        self.env_options: dict[str, Any] = manifest.get("env_options", {})
         self.obs_dim: int = int(manifest["obs_dim"])
         self.action_type: str = action["type"]
         self.action_size: int = int(action["size"])

@@ -260,6 +260,27 @@ def test_controller_example_runs_without_torch(bundles, name):
     assert "episode returns:" in result.stdout
 
 
+def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):
+    """Faults and env options reach the manifest; the example drives that robot by default."""
+    changed = {"faults": {"agent_1": "remove"}, "env_options": {"episode_limit": 40}}
+    ckpt = make_checkpoint(tmp_path / "c.pt", "hopper-4x1", "mat", **changed)
+    export(ckpt, tmp_path / "bundle", agent_counts=(3,))
+    policy = Policy.load(tmp_path / "bundle")
+    assert (policy.env_id, policy.env_faults, policy.env_options) == (
+        "hopper-4x1",
+        changed["faults"],
+        changed["env_options"],
+    )
+    script = Path(__file__).parents[1] / "examples" / "controller.py"
+    args = [str(tmp_path / "bundle"), "--rate", "100", "--seconds", "0.5"]
+    result = subprocess.run(
+        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert "with agents ['agent_0', 'agent_2', 'agent_3']" in result.stdout, result.stdout
+    assert "episode returns: none finished" not in result.stdout  # 50 steps, 40-step episodes
+
+
 def test_runtime_works_where_torch_cannot_be_imported(bundles):
     bundle = bundles["mat"][1]
     script = f"""
