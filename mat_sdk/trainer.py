@@ -313,7 +313,9 @@ class Trainer:
                 "(num_envs x rollout_length)"
             )
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
-        bar = _progress(total_steps, self.progress["steps"], progress_bar)
+        done = self.progress["steps"]
+        end = done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
+        bar = _progress(end, done, progress_bar)  # whole updates: may end past total_steps
         shown_return = "-"  # the latest finished episodes' mean; "-" until one finishes
         try:
             while self.progress["steps"] < total_steps:

@@ -228,6 +228,15 @@ def test_predict_takes_and_gives_pettingzoo_dicts(env_id):
     env.step(actions)
 
 
+def test_progress_bar_counts_whole_updates(capsys):
+    """40 steps asked, 30 per update: the run does 60 and its bar ends full at 60/60."""
+    with Trainer("hopper-2x2", "mat", **TINY) as trainer:
+        trainer.learn(40)
+        assert trainer.progress["steps"] == 60
+    bar = capsys.readouterr().err
+    assert "60/60" in bar and "/40" not in bar
+
+
 def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
     # per update (10 steps of each env): the mean return, nan if none ended
     with Trainer(
