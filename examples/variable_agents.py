@@ -45,7 +45,7 @@ def main() -> None:
     print("| env | agents | policy return (mean ± std) | random team |")
     print("|---|---|---|---|")
     for size in args.sizes:
-        team = make_team(f"swimmer-{size}")
+        team = make_team(f"swimmer-{size}", **policy.env_options)  # as trained, but M links
         ours = run_episodes(team, policy.act, args.episodes, seed=100)
         random = run_episodes(
             team,

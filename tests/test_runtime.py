@@ -281,6 +281,19 @@ def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):
     assert "episode returns: none finished" not in result.stdout  # 50 steps, 40-step episodes
 
 
+def test_variable_agents_example_serves_other_swimmer_lengths(tmp_path):
+    options = {"agent_id": False, "episode_limit": 30}
+    ckpt = make_checkpoint(tmp_path / "c.pt", "swimmer-4", "mat", env_options=options)
+    export(ckpt, tmp_path / "bundle", agent_counts=(3,))
+    script = Path(__file__).parents[1] / "examples" / "variable_agents.py"
+    args = [str(tmp_path / "bundle"), "--sizes", "3", "7", "--episodes", "1"]
+    result = subprocess.run(
+        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert "| swimmer-3 | 2 |" in result.stdout and "| swimmer-7 | 6 |" in result.stdout
+
+
 def test_runtime_works_where_torch_cannot_be_imported(bundles):
     bundle = bundles["mat"][1]
     script = f"""
