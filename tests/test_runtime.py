@@ -247,17 +247,21 @@ def test_one_policy_serves_several_threads(bundles):
     assert not failures
 
 
-@pytest.mark.parametrize("name", ["mat", "mat-discrete"])
-def test_controller_example_runs_without_torch(bundles, name):
-    """examples/controller.py (which blocks torch itself) on a robot and on the game."""
-    script = Path(__file__).parents[1] / "examples" / "controller.py"
-    args = [str(bundles[name][1]), "--rate", "50", "--seconds", "0.4"]
+def _run_example(name: str, *args: str) -> str:
+    """Run examples/NAME as a user would; its stdout, or the test fails with its stderr."""
+    script = Path(__file__).parents[1] / "examples" / name
     result = subprocess.run(
         [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr
-    assert "20 steps in" in result.stdout and "act: p50" in result.stdout, result.stdout
-    assert "episode returns:" in result.stdout
+    return result.stdout
+
+
+@pytest.mark.parametrize("name", ["mat", "mat-discrete"])
+def test_controller_example_runs_without_torch(bundles, name):
+    """examples/controller.py (which blocks torch itself) on a robot and on the game."""
+    out = _run_example("controller.py", str(bundles[name][1]), "--rate", "50", "--seconds", "0.4")
+    assert "20 steps in" in out and "act: p50" in out and "episode returns:" in out, out
 
 
 def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):
@@ -271,27 +275,18 @@ def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):
         changed["faults"],
         changed["env_options"],
     )
-    script = Path(__file__).parents[1] / "examples" / "controller.py"
-    args = [str(tmp_path / "bundle"), "--rate", "100", "--seconds", "0.5"]
-    result = subprocess.run(
-        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
-    )
-    assert result.returncode == 0, result.stderr
-    assert "with agents ['agent_0', 'agent_2', 'agent_3']" in result.stdout, result.stdout
-    assert "episode returns: none finished" not in result.stdout  # 50 steps, 40-step episodes
+    out = _run_example("controller.py", str(tmp_path / "bundle"), "--seconds", "0.5")
+    assert "with agents ['agent_0', 'agent_2', 'agent_3']" in out, out
+    assert "episode returns: none finished" not in out  # 50 steps at 100 Hz, 40-step episodes
 
 
 def test_variable_agents_example_serves_other_swimmer_lengths(tmp_path):
     options = {"agent_id": False, "episode_limit": 30}
     ckpt = make_checkpoint(tmp_path / "c.pt", "swimmer-4", "mat", env_options=options)
     export(ckpt, tmp_path / "bundle", agent_counts=(3,))
-    script = Path(__file__).parents[1] / "examples" / "variable_agents.py"
-    args = [str(tmp_path / "bundle"), "--sizes", "3", "7", "--episodes", "1"]
-    result = subprocess.run(
-        [sys.executable, str(script), *args], capture_output=True, text=True, timeout=120
-    )
-    assert result.returncode == 0, result.stderr
-    assert "| swimmer-3 | 2 |" in result.stdout and "| swimmer-7 | 6 |" in result.stdout
+    args = ("--sizes", "3", "7", "--episodes", "1")
+    out = _run_example("variable_agents.py", str(tmp_path / "bundle"), *args)
+    assert "| swimmer-3 | 2 |" in out and "| swimmer-7 | 6 |" in out, out
 
 
 def test_runtime_works_where_torch_cannot_be_imported(bundles):
