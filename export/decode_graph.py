@@ -267,7 +267,7 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
         for attn in ("attn1", "attn2")
         for kind in _cache_kinds(cfg)
     ]
-    step = _AgentStep(cfg, discrete, embed, tokens[1:])
+    step = _AgentStep(cfg, discrete, embed, tokens)
     if agents is None:
         empty = [_empty_cache(g, cfg, batch)] * len(caches)
         outputs = _loop(g, step, per_agent, widths, batch, first, empty, caches)
@@ -307,10 +307,11 @@ def _normalised_tokens(policy: MAT) -> np.ndarray:
 class _AgentStep:
     """One agent's decoder step on [B, 1, C] activations; writes its nodes into a builder."""
 
-    def __init__(self, cfg, discrete: bool, embed: np.ndarray, choices: np.ndarray):
-        """`embed`: the action encoder's matrix; `choices`: each discrete choice's
-        normalised token (unused for continuous actions)."""
-        self.cfg, self.discrete, self.embed, self.choices = cfg, discrete, embed, choices
+    def __init__(self, cfg, discrete: bool, embed: np.ndarray, tokens: np.ndarray):
+        """`embed`: the action encoder's matrix; `tokens`: the normalised start token, then
+        (discrete) each choice's."""
+        self.cfg, self.discrete, self.embed, self.choices = cfg, discrete, embed, tokens[1:]
+        self.start = tokens[0]
 
     def outputs(self) -> dict[str, int]:
         """What every step emits for the whole team: name -> width (0: one choice per row)."""
@@ -330,14 +331,19 @@ class _AgentStep:
         kinds = len(_cache_kinds(cfg))  # caches per attention
         for b in range(cfg.n_block):
             block, past1, past2 = f"decoder.blocks.{b}", None, None
-            if past is not None:
-                cache = past[2 * kinds * b : 2 * kinds * (b + 1)]
-                past1, past2 = cache[:kinds], cache[kinds:]
-            attended = _attention(g, cfg, x, f"{block}.attn1", past1, present)
-            x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
-            query = mine[f"query2.{b}"]
-            attended = _attention(g, cfg, x, f"{block}.attn2", past2, present, query)
-            x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
+            if past is None and b == 0:  # the first agent's first attentions: constants
+                stream2, attended = _first_attentions(w, self.start)
+                present += [x, g.op("Expand", g.const(stream2, "stream2"), g.op("Shape", x))]
+                x = g.layer_norm(g.op("Add", mine["rep"], g.const(attended)), f"{block}.ln2")
+            else:
+                if past is not None:
+                    cache = past[2 * kinds * b : 2 * kinds * (b + 1)]
+                    past1, past2 = cache[:kinds], cache[kinds:]
+                attended = _attention(g, cfg, x, f"{block}.attn1", past1, present)
+                x = g.layer_norm(g.op("Add", x, attended), f"{block}.ln1")
+                query = mine[f"query2.{b}"]
+                attended = _attention(g, cfg, x, f"{block}.attn2", past2, present, query)
+                x = g.layer_norm(g.op("Add", mine["rep"], attended), f"{block}.ln2")
             x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln3")
         hidden = g.layer_norm(g.gelu(g.linear(x, "decoder.head.0")), "decoder.head.2")
         if not self.discrete:  # next token from (hidden @ head.3 + shift) @ action encoder
@@ -487,6 +493,27 @@ def _attention(g: GraphBuilder, cfg, stream, attn, past, present, query=None) ->
     )
     present += caches
     return g.linear(mixed, f"{attn}.proj")
+
+
+def _first_attentions(w: dict, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first agent's first block, one head, up to its second attention's output: it sees
+    only its own entry, the start token, so all of it is fixed. -> (its entry in the second
+    attention's stream, that attention's output), computed here in float64 once, so the
+    graph does not recompute them per call or lose the shapes ONNX Runtime fuses on."""
+    block = "decoder.blocks.0"
+
+    def layer_norm(x, layer):
+        x = (x - x.mean()) / np.sqrt(x.var() + LN_EPS)
+        return x * w[f"{layer}.weight"] + w[f"{layer}.bias"]
+
+    def attend(stream, attn):  # attention over one entry returns it; then the projections
+        weight, bias = _stream_output(w, f"{block}.{attn}", 1)
+        return stream @ weight.astype(np.float64) + bias
+
+    start = start.astype(np.float64)
+    stream2 = layer_norm(start + attend(start, "attn1"), f"{block}.ln1")
+    attended = attend(stream2, "attn2")
+    return stream2.astype(np.float32)[None, None], attended.astype(np.float32)
 
 
 def _stream_queries(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarray]:
