@@ -151,7 +151,9 @@ def build_decode(
     shift = _noise_shift(g, std)
     if isinstance(policy, MAT):
         rep, values = _encoder(g, x, cfg, value_fold)
-        params = _decoder(g, rep, cfg, shift, agents, _normalised_tokens(policy))
+        tokens = _normalised_tokens(policy)
+        first = _first_attentions(policy, tokens[0])
+        params = _decoder(g, rep, cfg, shift, agents, tokens, first)
     else:
         if isinstance(policy, MAPPO):
             values = _mappo_values(g, x, cfg, value_fold)
@@ -231,7 +233,9 @@ def _decentralised_sample(g: GraphBuilder, params: str, shift: str, discrete: bo
     return {"actions": g.op("Add", params, shift), "mean": params}
 
 
-def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tokens):
+def _decoder(
+    g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tokens, first_attentions
+):
     """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
     agents, or (`agents` given) the steps written out one after another for that count.
 
@@ -267,7 +271,7 @@ def _decoder(g: GraphBuilder, rep: str, cfg, shift: str, agents: int | None, tok
         for attn in ("attn1", "attn2")
         for kind in _cache_kinds(cfg)
     ]
-    step = _AgentStep(cfg, discrete, embed, tokens)
+    step = _AgentStep(cfg, discrete, embed, tokens[1:], first_attentions)
     if agents is None:
         empty = [_empty_cache(g, cfg, batch)] * len(caches)
         outputs = _loop(g, step, per_agent, widths, batch, first, empty, caches)
@@ -307,11 +311,11 @@ def _normalised_tokens(policy: MAT) -> np.ndarray:
 class _AgentStep:
     """One agent's decoder step on [B, 1, C] activations; writes its nodes into a builder."""
 
-    def __init__(self, cfg, discrete: bool, embed: np.ndarray, tokens: np.ndarray):
-        """`embed`: the action encoder's matrix; `tokens`: the normalised start token, then
-        (discrete) each choice's."""
-        self.cfg, self.discrete, self.embed, self.choices = cfg, discrete, embed, tokens[1:]
-        self.start = tokens[0]
+    def __init__(self, cfg, discrete: bool, embed: np.ndarray, choices: np.ndarray, first):
+        """`embed`: the action encoder's matrix; `choices`: each discrete choice's
+        normalised token (unused for continuous actions); `first`: `_first_attentions`."""
+        self.cfg, self.discrete, self.embed, self.choices = cfg, discrete, embed, choices
+        self.first_attentions = first
 
     def outputs(self) -> dict[str, int]:
         """What every step emits for the whole team: name -> width (0: one choice per row)."""
@@ -332,7 +336,7 @@ class _AgentStep:
         for b in range(cfg.n_block):
             block, past1, past2 = f"decoder.blocks.{b}", None, None
             if past is None and b == 0:  # the first agent's first attentions: constants
-                stream2, attended = _first_attentions(w, self.start)
+                stream2, attended = self.first_attentions
                 present += [x, g.op("Expand", g.const(stream2, "stream2"), g.op("Shape", x))]
                 x = g.layer_norm(g.op("Add", mine["rep"], g.const(attended)), f"{block}.ln2")
             else:
@@ -495,25 +499,19 @@ def _attention(g: GraphBuilder, cfg, stream, attn, past, present, query=None) ->
     return g.linear(mixed, f"{attn}.proj")
 
 
-def _first_attentions(w: dict, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The first agent's first block, one head, up to its second attention's output: it sees
-    only its own entry, the start token, so all of it is fixed. -> (its entry in the second
-    attention's stream, that attention's output), computed here in float64 once, so the
-    graph does not recompute them per call or lose the shapes ONNX Runtime fuses on."""
-    block = "decoder.blocks.0"
-
-    def layer_norm(x, layer):
-        x = (x - x.mean()) / np.sqrt(x.var() + LN_EPS)
-        return x * w[f"{layer}.weight"] + w[f"{layer}.bias"]
-
-    def attend(stream, attn):  # attention over one entry returns it; then the projections
-        weight, bias = _stream_output(w, f"{block}.{attn}", 1)
-        return stream @ weight.astype(np.float64) + bias
-
-    start = start.astype(np.float64)
-    stream2 = layer_norm(start + attend(start, "attn1"), f"{block}.ln1")
-    attended = attend(stream2, "attn2")
-    return stream2.astype(np.float32)[None, None], attended.astype(np.float32)
+def _first_attentions(policy: MAT, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first agent's first block up to its second attention's output, computed by the
+    model itself: that agent sees only its own entry, the start token, so all of it is fixed.
+    -> (its entry in the second attention's stream [1, 1, C], that attention's output [C]),
+    so the graph neither recomputes them per call nor loses the shapes ONNX Runtime fuses on.
+    """
+    block = policy.decoder.blocks[0]
+    device = block.ln1.weight.device
+    with torch.no_grad():
+        x = torch.from_numpy(start).to(device)[None, None]
+        stream2 = block.ln1(x + block.attn1(x, x)[0])
+        attended = block.attn2(stream2, stream2)[0]  # one key: the query does not matter
+    return stream2.cpu().numpy(), attended[0, 0].cpu().numpy()
 
 
 def _stream_queries(w: dict, attn: str, heads: int) -> tuple[np.ndarray, np.ndarray]:
