@@ -1,7 +1,8 @@
 """`decode.onnx`: the whole control step in one ONNX Runtime call, built from the weights.
 
     obs [B, n, obs_dim], noise [B, n, A] (, available [B, n, A]) ->
-    actions, mean + std (continuous) or logits (discrete), values
+    actions (, clipped_actions), mean + std (continuous) or logits (discrete), values,
+    obs_check
 
 Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not arithmetic
 (~0.5-1 µs per ONNX Runtime kernel; the torch-exported step graph ran ~89 kernels per agent).
@@ -130,9 +131,18 @@ def build_decode(
     value_mean,
     value_std,
     agents: int | None = None,
+    action_bounds: tuple[float, float] = (-1.0, 1.0),
 ) -> onnx.ModelProto:
     """The control-step graph for a MAT, MAT-Dec or MAPPO policy with its normalisers; for
-    any agent count, or specialised (unrolled, for MAT) to exactly `agents`."""
+    any agent count, or specialised (unrolled, for MAT) to exactly `agents`.
+
+    Besides the actions (as sampled: what the next agent is conditioned on) it returns what
+    the runtime would otherwise compute with numpy around the call, where each ufunc costs
+    more than a kernel does here (n = 6: 176 -> 168 µs per `Policy.act`, BENCHMARKS.md):
+    `clipped_actions` (continuous; clipped to `action_bounds`) and `obs_check`, the sum of
+    all observations, finite unless one is NaN or inf (or the sum overflows, which the
+    runtime double-checks).
+    """
     cfg = policy.cfg
     discrete = cfg.action_type == "discrete"
     g = GraphBuilder(_weights(policy))
@@ -164,10 +174,20 @@ def build_decode(
     g.op("Identity", values, outputs=["values"])
     if not discrete:
         g.op("Expand", g.const(std, "std"), g.op("Shape", params["mean"]), outputs=["std"])
+        low, high = (g.const(bound, "bound") for bound in action_bounds)
+        g.op("Clip", params["actions"], low, high, outputs=["clipped_actions"])
     for name in ["actions", *(h for h in head if h != "std")]:
         g.op("Identity", params[name], outputs=[name])
-    widths = {"actions": 1 if discrete else cfg.action_dim, **dict.fromkeys(head, cfg.action_dim)}
-    outputs = [_value(name, ["batch", n, w]) for name, w in {**widths, "values": 1}.items()]
+    g.op("ReduceSum", "obs", keepdims=0, outputs=["obs_check"])
+    clipped = {} if discrete else {"clipped_actions": cfg.action_dim}
+    widths = {
+        "actions": 1 if discrete else cfg.action_dim,
+        **clipped,
+        **dict.fromkeys(head, cfg.action_dim),
+        "values": 1,
+    }
+    outputs = [_value(name, ["batch", n, w]) for name, w in widths.items()]
+    outputs.append(_value("obs_check", []))
     graph = helper.make_graph(g.nodes, "mat_decode", inputs, outputs, g.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
     model.ir_version = 10

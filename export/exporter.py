@@ -76,10 +76,11 @@ def export(
             float(value_scale.mean),
             float(value_scale.std),
         )
+        bounds = (manifest["action"]["low"], manifest["action"]["high"])
         specialised = [cfg.n_agents] if cfg.algo == "mat" else []
         for agents in [None, *specialised]:
             name = "decode.onnx" if agents is None else f"decode_n{agents}.onnx"
-            decode = build_decode(policy, *folded, agents=agents)
+            decode = build_decode(policy, *folded, agents=agents, action_bounds=bounds)
             (staging / name).write_bytes(decode.SerializeToString())
             graphs[name] = {
                 "inputs": [i.name for i in decode.graph.input],
@@ -88,7 +89,7 @@ def export(
                 "agents": agents,  # None: any count
             }
         manifest["graphs"] = dict(graphs)
-        parity = measure_parity(policy, normalizer, value_scale, staging, counts)
+        parity = measure_parity(policy, normalizer, value_scale, staging, counts, bounds)
         worst = max(parity["max_abs_diff"].values())
         if not worst <= PARITY_LIMIT:
             raise ExportError(
@@ -295,8 +296,11 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> dict:
-    """Max |ORT - torch| per agent count: values, teacher-forced and autoregressive decoding."""
+def measure_parity(
+    policy, normalizer, value_scale, directory: Path, counts, bounds=(-1.0, 1.0)
+) -> dict:
+    """Max |ORT - torch| per agent count: values, teacher-forced and autoregressive decoding
+    (`decode*.onnx`: also sampled and clipped actions)."""
     from mat_runtime.policy import session  # the runtime's own session settings
 
     encoder = session((directory / "encoder.onnx").read_bytes())
@@ -350,6 +354,8 @@ def measure_parity(policy, normalizer, value_scale, directory: Path, counts) -> 
             )
             diffs.append(_value_diff(got["values"], torch_values))
             pairs.append((got["actions"], expected))
+            if cfg.action_type == "continuous":
+                pairs.append((got["clipped_actions"], np.clip(expected, *bounds)))
         for got, expected in pairs:
             if cfg.action_type == "continuous":
                 diffs.append(np.abs(got - expected).max())

@@ -42,7 +42,8 @@ class OnnxActor:
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}
         if self.discrete:
             feed["available"] = np.ones(shape, np.float32)
-        outputs = self.session.run(None, feed)  # actions, mean + std or logits, values
+        head = ["logits"] if self.discrete else ["mean", "std"]
+        outputs = self.session.run(["actions", *head, "values"], feed)
         actions, *params, values = (torch.from_numpy(out) for out in outputs)
         dist = self.policy.dist.make(params[0], params[1] if len(params) > 1 else None, None)
         log_prob = self.policy.dist.log_prob_entropy(dist, actions)[0]

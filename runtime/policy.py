@@ -25,6 +25,7 @@ Runtime sessions are thread-safe and the call shares no mutable state). A
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any
@@ -154,21 +155,22 @@ class Policy:
         """
         x = self._check_obs(obs)
         batch, n, _ = x.shape
+        single = np.ndim(obs) == 2
         feed = {"obs": x, "noise": self._noise(batch, n, deterministic, seed)}
         if self.discrete:
             feed["available"] = self._check_available(available, batch, n)
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
         outputs = self._bound(batch, n).run(feed)  # this thread's buffers: copy what we return
-        raw = outputs["actions"]
+        self._check_finite(x, outputs.get("obs_check"), single)
         if self.discrete:
-            actions = raw[..., 0].astype(np.int64)
-        elif clip:
-            actions = np.minimum(raw, self._high)
-            np.maximum(actions, self._low, out=actions)
-        else:
-            actions = raw.copy()
-        single = np.ndim(obs) == 2
+            actions = outputs["actions"][..., 0].astype(np.int64)
+        elif not clip:
+            actions = outputs["actions"].copy()
+        elif "clipped_actions" in outputs:
+            actions = outputs["clipped_actions"].copy()
+        else:  # a bundle exported before the graph clipped
+            actions = np.clip(outputs["actions"], self._low, self._high)
         if not return_values:
             return actions[0] if single else actions
         extra = {name: outputs[name].copy() for name in self._outputs[1:]}
@@ -207,15 +209,22 @@ class Policy:
             raise InputError(f"got {n} agents; this {self.algo} bundle serves {allowed}")
         batched = array if array.ndim == 3 else array[None]
         if batched.dtype == np.float32:
-            x = np.ascontiguousarray(batched)
-        else:
-            with np.errstate(over="ignore"):  # out-of-range values become inf, refused below
-                x = np.ascontiguousarray(batched, dtype=np.float32)
-        if not np.isfinite(x).all():
-            row, agent = np.argwhere(~np.isfinite(x).all(axis=-1))[0]
-            where = f"agent {agent}" + (f" of batch row {row}" if array.ndim == 3 else "")
+            return np.ascontiguousarray(batched)
+        with np.errstate(over="ignore"):  # out-of-range values become inf: `_check_finite`
+            return np.ascontiguousarray(batched, dtype=np.float32)
+
+    @staticmethod
+    def _check_finite(x: np.ndarray, obs_check, single: bool) -> None:
+        """Refuse NaN or inf in obs, after the call: the graph sums all observations into
+        `obs_check` (one kernel, cheaper than numpy's check), and only a non-finite sum (or
+        a bundle without it) leads to the search for the agent."""
+        if obs_check is not None and math.isfinite(obs_check):
+            return
+        bad = ~np.isfinite(x).all(axis=-1)
+        if bad.any():  # else the sum merely overflowed
+            row, agent = np.argwhere(bad)[0]
+            where = f"agent {agent}" + ("" if single else f" of batch row {row}")
             raise InputError(f"obs of {where} contains NaN or inf (as float32); check the sensor")
-        return x
 
     def _check_available(self, available, batch: int, n: int) -> np.ndarray:
         shape = (batch, n, self.action_size)
@@ -242,15 +251,20 @@ class Policy:
                 cache.clear()
             batched = batch >= BATCH_ROWS
             session = self._sessions.get((n, batched)) or self._sessions[(None, batched)]
-            per_agent = (batch, n, self.action_size)
+            per_agent, one = (batch, n, self.action_size), (batch, n, 1)
             shapes = {
                 "obs": (batch, n, self.obs_dim),
                 "noise": per_agent,
                 **({"available": per_agent} if self.discrete else {}),
-                "actions": (batch, n, 1) if self.discrete else per_agent,
-                **dict.fromkeys(self._outputs[1:-1], per_agent),  # mean + std, or logits
-                "values": (batch, n, 1),
             }
+            for output in session.get_outputs():  # actions, mean + std or logits, values, ..
+                name = output.name
+                if name == "obs_check":
+                    shapes[name] = ()
+                elif name == "values" or (name == "actions" and self.discrete):
+                    shapes[name] = one
+                else:
+                    shapes[name] = per_agent
             bound = cache[(batch, n)] = _Bound(session, shapes)
         return bound
 

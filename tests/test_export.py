@@ -164,16 +164,26 @@ def test_decode_graph_runs_the_whole_control_step_and_samples_from_given_noise(
     export(mat_checkpoint, tmp_path / "bundle")
     session = ort.InferenceSession(str(tmp_path / "bundle" / "decode.onnx"))
     assert [i.name for i in session.get_inputs()] == ["obs", "noise"]
-    assert [o.name for o in session.get_outputs()] == ["actions", "mean", "std", "values"]
+    names = ["actions", "clipped_actions", "mean", "std", "values", "obs_check"]
+    assert [o.name for o in session.get_outputs()] == names
     loaded = LoadedPolicy.from_checkpoint(mat_checkpoint)
     rng = np.random.default_rng(3)
     for n in (1, 5, 33):  # any agent count, one call
         obs = rng.normal(size=(2, n, loaded.policy.cfg.obs_dim)).astype(np.float32)
         zero = np.zeros((2, n, 2), np.float32)
-        actions, mean, _, _ = session.run(None, {"obs": obs, "noise": zero})
+        actions, _, mean, _, _, obs_check = session.run(None, {"obs": obs, "noise": zero})
         np.testing.assert_allclose(actions, mean)
         np.testing.assert_allclose(actions, loaded.act(obs), atol=1e-5)  # zero noise = the mean
-        noise = rng.normal(size=(2, n, 2)).astype(np.float32)
-        sampled, sampled_mean, sampled_std, _ = session.run(None, {"obs": obs, "noise": noise})
-        np.testing.assert_allclose(sampled, sampled_mean + sampled_std * noise, atol=1e-6)
+        np.testing.assert_allclose(obs_check, obs.sum(dtype=np.float64), atol=1e-3)
+        noise = 3 * rng.normal(size=(2, n, 2)).astype(np.float32)  # wide: some exceed [-1, 1]
+        out = dict(zip(names, session.run(None, {"obs": obs, "noise": noise}), strict=True))
+        sampled = out["actions"]
+        np.testing.assert_allclose(sampled, out["mean"] + out["std"] * noise, atol=1e-6)
         assert not np.allclose(sampled, actions)
+        assert (np.abs(sampled) > 1).any()
+        np.testing.assert_array_equal(out["clipped_actions"], np.clip(sampled, -1, 1))
+        for bad in (np.nan, np.inf, -np.inf):
+            broken = obs.copy()
+            broken[1, n - 1, 0] = bad
+            obs_check = session.run(["obs_check"], {"obs": broken, "noise": zero})[0]
+            assert not np.isfinite(obs_check)

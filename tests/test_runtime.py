@@ -158,6 +158,8 @@ def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
     expected = policy.act(good)
     nan = good.copy()
     nan[4, 2] = np.nan
+    batch_inf = _obs(policy, 6, batch=3)
+    batch_inf[1, 2, 0] = -np.inf
     bad_calls = [
         (lambda: policy.act(good[:, :-1]), "features per agent"),
         (lambda: policy.act(good[0]), r"for a single agent pass obs\[None\]"),
@@ -165,6 +167,7 @@ def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
         (lambda: policy.act(np.zeros((0, policy.obs_dim))), "no agents"),
         (lambda: policy.act(nan), "agent 4"),
         (lambda: policy.act(np.full_like(good, 1e39)), "inf"),
+        (lambda: policy.act(batch_inf), "agent 2 of batch row 1"),
         (lambda: policy.act(good.astype(str)), "numbers"),
         (lambda: policy.act(good, deterministic=False), "seed"),
         (lambda: policy.act(good, seed=3), "deterministic=False"),
@@ -179,6 +182,52 @@ def test_bad_input_raises_clear_errors_and_the_policy_keeps_serving(bundles):
             call()
         np.testing.assert_array_equal(policy.act(good), expected)  # still serving
     assert issubclass(InputError, ValueError)
+    huge = np.full_like(good, 3e38)  # finite in float32, but their sum overflows: still served
+    assert np.isfinite(policy.act(huge)).all()
+
+
+def test_a_bundle_exported_before_the_graph_checked_and_clipped_still_serves(bundles, tmp_path):
+    """Older `decode*.onnx` graphs have no `clipped_actions` / `obs_check` outputs: the
+    runtime then clips and checks obs with numpy, with the same results."""
+    import hashlib
+    import shutil
+
+    import onnx
+
+    source = bundles["mat"][1]
+    old = tmp_path / "old"
+    shutil.copytree(source, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    dropped = {"clipped_actions", "obs_check"}
+    for name, entry in manifest["graphs"].items():
+        if not name.startswith("decode"):
+            continue
+        model = onnx.load(old / name)
+        graph = model.graph
+        kept = [node for node in graph.node if not dropped & set(node.output)]
+        del graph.node[:]
+        graph.node.extend(kept)
+        outputs = [o for o in graph.output if o.name not in dropped]
+        del graph.output[:]
+        graph.output.extend(outputs)
+        onnx.save(model, old / name)
+        entry["outputs"] = [o.name for o in outputs]
+        entry["sha256"] = hashlib.sha256((old / name).read_bytes()).hexdigest()
+    (old / "manifest.json").write_text(json.dumps(manifest))
+
+    new, before = Policy.load(source), Policy.load(old)
+    assert "obs_check" not in before._bound(1, 3).buffers
+    for n in (3, 6):  # decode_n3.onnx and decode.onnx
+        obs = _obs(new, n, batch=2, seed=n)
+        np.testing.assert_array_equal(before.act(obs), new.act(obs))
+        raw = new.act(obs, deterministic=False, seed=1, clip=False)
+        assert np.abs(raw).max() > 1  # so the clip has something to do
+        for clip in (True, False):
+            got = before.act(obs, deterministic=False, seed=1, clip=clip)
+            np.testing.assert_array_equal(got, new.act(obs, deterministic=False, seed=1, clip=clip))
+        obs[1, n - 1, 3] = np.nan
+        with pytest.raises(InputError, match=f"agent {n - 1} of batch row 1"):
+            before.act(obs)
 
 
 def test_broken_bundles_are_refused_before_loading(bundles, tmp_path):
