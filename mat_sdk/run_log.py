@@ -67,8 +67,14 @@ def plot_curve(metrics_path: Path, png_path: Path, title: str | None = None) -> 
     return plot_runs({Path(metrics_path).parent.name: metrics_path}, png_path, title)
 
 
-def plot_runs(runs: dict[str, Path], png_path: Path, title: str | None = None) -> Path | None:
-    """Several runs' episode returns (mean line, min-max band) against env steps, one figure."""
+def plot_runs(
+    runs: dict[str, Path],
+    png_path: Path,
+    title: str | None = None,
+    references: dict[str, float] | None = None,
+) -> Path | None:
+    """Several runs' episode returns (mean line, min-max band) against env steps, one figure;
+    `references`: label -> return, drawn as dashed horizontal lines (e.g. published results)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,6 +96,9 @@ def plot_runs(runs: dict[str, Path], png_path: Path, title: str | None = None) -
     if not plotted:
         plt.close(fig)
         return None
+    for label, value in (references or {}).items():
+        ax.axhline(value, linestyle="--", color="gray", linewidth=1)
+        ax.annotate(label, (0, value), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
     ax.set_xlabel("env steps")
     ax.set_ylabel("episode return")
     ax.set_title(title or ", ".join(runs))
