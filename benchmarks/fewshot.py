@@ -1,11 +1,14 @@
-"""The paper's few-shot protocol on `cheetah-6x1` (issue 7; results in docs/FEWSHOT.md).
+"""The paper's few-shot protocol on a HalfCheetah (issue 7; results in docs/FEWSHOT.md).
 
 For each of the six joints disabled ("zero"): the pre-trained policy's zero-shot return,
-then fine-tuning from it and MAT from scratch with the same env steps, each evaluated after
-budgets given as fractions of the pre-training steps (one run per method passes through
-every budget, so the smaller budgets are nested in the larger).
+then fine-tuning from it and MAT from scratch (on the checkpoint's env, with its recipe) with
+the same env steps, each evaluated after budgets given as fractions of the pre-training
+steps, or of `--of` steps (the paper: 1e7). One run per method passes through every
+budget, so the smaller budgets are nested in the larger.
 
     python benchmarks/fewshot.py runs/curve-mat/checkpoint.pt --budgets 0.01 0.05
+    python benchmarks/fewshot.py runs/hc6x1-mat/checkpoint.pt --budgets 0.01 --of 10000000 \
+        --out docs/fewshot-mamujoco
 
 Rows are appended to OUT/fewshot.csv as they finish; re-running skips finished rows, so an
 interrupted experiment continues where it stopped.
@@ -43,7 +46,7 @@ def _evaluate_at(budget_steps: dict[int, float], episodes: int, rows: list, join
     return callback
 
 
-def report(table: Path, plot: Path) -> str:
+def report(table: Path, plot: Path, env_id: str) -> str:
     """A Markdown table (joint x method/budget, mean ± std) and a bar chart of the CSV."""
     import matplotlib
 
@@ -79,7 +82,7 @@ def report(table: Path, plot: Path) -> str:
         axis.bar(np.arange(len(joints)) + k * width, heights, width, label=label)
     axis.set_xticks(np.arange(len(joints)) + 0.4 - width / 2, joints)
     axis.set_ylabel("episode return")
-    axis.set_title("cheetah-6x1, one joint disabled: fine-tuned MAT vs MAT from scratch")
+    axis.set_title(f"{env_id}, one joint disabled: fine-tuned MAT vs MAT from scratch")
     axis.legend(fontsize=8)
     figure.tight_layout()
     figure.savefig(plot, dpi=120)
@@ -94,19 +97,24 @@ def _steps(rows: list[dict], budget: float) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("checkpoint", help="MAT pre-trained on cheetah-6x1")
+    parser.add_argument("checkpoint", help="MAT pre-trained on a HalfCheetah with six agents")
     parser.add_argument("--budgets", type=float, nargs="+", default=[0.01, 0.05, 0.1])
+    parser.add_argument(
+        "--of", type=int, help="steps the budgets are fractions of [the pre-training's]"
+    )
     parser.add_argument("--joints", nargs="+", default=list(JOINTS))
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("docs/fewshot"))
     parser.add_argument("--report", action="store_true", help="Only print the table and plot.")
     args = parser.parse_args()
+    pretrained = checkpoints.load(args.checkpoint)
+    env_id = pretrained["config"]["train"]["env"]
     if args.report:
-        report(args.out / "fewshot.csv", args.out / "fewshot.png")
+        report(args.out / "fewshot.csv", args.out / "fewshot.png", env_id)
         return
 
-    pretrained_steps = checkpoints.load(args.checkpoint)["progress"]["steps"]
-    budget_steps = {round(b * pretrained_steps): b for b in args.budgets}
+    reference_steps = args.of or pretrained["progress"]["steps"]
+    budget_steps = {round(b * reference_steps): b for b in args.budgets}
     total = max(budget_steps)
     args.out.mkdir(parents=True, exist_ok=True)
     table = args.out / "fewshot.csv"
@@ -132,13 +140,13 @@ def main() -> None:
                 zero = result.zero_shot
                 rows.insert(0, [joint, "zero-shot", 0.0, 0, np.mean(zero), np.std(zero)])
             else:
-                with Trainer("cheetah-6x1", "mat", faults=faults) as trainer:
+                with Trainer(env_id, "mat", faults=faults) as trainer:
                     trainer.learn(total, callback=callback, progress_bar=False)
             with table.open("a") as f:
                 csv.writer(f).writerows(rows)
             for row in rows:
                 print(", ".join(str(round(v, 3)) if isinstance(v, float) else str(v) for v in row))
-    report(table, args.out / "fewshot.png")
+    report(table, args.out / "fewshot.png", env_id)
 
 
 if __name__ == "__main__":

@@ -267,6 +267,23 @@ def test_bad_faults_are_rejected_clearly():
         envs.make("cheetah-2x3", faults={"agent_0": "remove", "agent_1": "remove"})
 
 
+def test_mamujoco_faults_name_an_agent_or_a_joint():
+    def ctrl_after_full_push(faults):
+        team = envs.make_team("mamujoco:HalfCheetah-6x1", faults=faults, seed=0)
+        team.reset(seed=0)
+        team.step(np.ones((6, 1)))
+        return team._env.single_agent_env.unwrapped.data.ctrl.copy()
+
+    assert ctrl_after_full_push({}).tolist() == [1.0] * 6
+    by_joint = ctrl_after_full_push({"bfoot": "zero"})  # actuators: bthigh bshin bfoot ...
+    assert by_joint.tolist() == [1.0, 1.0, 0.0, 1.0, 1.0, 1.0]
+    assert ctrl_after_full_push({"agent_2": "zero"}).tolist() == by_joint.tolist()
+    with pytest.raises(ValueError, match="neither an agent nor an actuated joint.*joints: bthigh"):
+        envs.make_team("mamujoco:HalfCheetah-6x1", faults={"tail": "zero"})
+    with pytest.raises(ValueError, match="mode 'zero' only"):
+        envs.make_team("mamujoco:HalfCheetah-6x1", faults={"bfoot": "remove"})
+
+
 @pytest.mark.parametrize("env_id", ["hopper-2x2", "mamujoco:HalfCheetah-6x1"])
 def test_episode_limit_must_be_a_positive_integer(env_id):
     for limit in (0, -5, 2.5):  # 0 used to mean the default, silently

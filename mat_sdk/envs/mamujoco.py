@@ -58,14 +58,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
         self.episode_limit = checked_episode_limit(episode_limit, spec_limit or 1000)
-        self._zeroed = set()
-        for name, mode in (faults or {}).items():
-            if name not in self.agents or mode != "zero":
-                raise ValueError(
-                    f"MaMuJoCo faults support '<agent>=zero' only (agents: {self.agents}); "
-                    f"got {name}={mode}"
-                )
-            self._zeroed.add(self.agents.index(name))
+        self._action_mask = self._fault_mask(faults or {})
         self._seed = seed
         self._steps = 0
 
@@ -78,15 +71,45 @@ class MaMuJoCoTeam(ArrayTeam):
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         actions = np.clip(actions, -1.0, 1.0)
+        actions = actions * self._action_mask
         per_agent = {
-            name: (0.0 if row in self._zeroed else 1.0) * actions[row, : self.act_dims[row]]
-            for row, name in enumerate(self.agents)
+            name: actions[row, : self.act_dims[row]] for row, name in enumerate(self.agents)
         }
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
         first = self.agents[0]
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit
         return self._pack(obs), float(rewards[first]), bool(terminations[first]), truncated
+
+    def _fault_mask(self, faults: Mapping[str, str]) -> np.ndarray:
+        """`[n, act_dim]`: 0 where a "zero" fault silences the entry's actuator, else 1.
+
+        A fault names an agent (all its actuators) or a joint by its MaMuJoCo label
+        (`bfoot`), as for our own robots; "remove" is not offered, since a MaMuJoCo
+        scenario fixes its team.
+        """
+        joints = {
+            node.label: (row, col)
+            for row, partition in enumerate(self._env.agent_action_partitions)
+            for col, node in enumerate(partition)
+        }
+        mask = np.ones((self.n_agents, self.act_dim))
+        for name, mode in faults.items():
+            if mode != "zero":
+                raise ValueError(
+                    f"MaMuJoCo faults support mode 'zero' only (a scenario fixes its team); "
+                    f"got {name}={mode}"
+                )
+            if name in self.agents:
+                mask[self.agents.index(name)] = 0.0
+            elif name in joints:
+                mask[joints[name]] = 0.0
+            else:
+                raise ValueError(
+                    f"fault names {name!r}, which is neither an agent nor an actuated joint of "
+                    f"{self.env_id}; agents: {', '.join(self.agents)}; joints: {', '.join(joints)}"
+                )
+        return mask
 
     def get_state(self) -> dict:
         import mujoco
