@@ -107,7 +107,7 @@ def evaluate(
             first = info["done"] & np.isnan(returns)
             returns[first] = info["episode_return"][first]
     if video:
-        write_video(frames, video, fps=round(1 / recorder.physics.timestep() / recorder.substeps))
+        write_video(frames, video, fps=round(1 / recorder.control_timestep))
     return returns.tolist()
 
 

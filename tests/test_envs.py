@@ -338,14 +338,22 @@ def test_vector_env_autoreset_reports_final_obs_and_episode_stats():
             vec.step(np.zeros((3, 2)))
 
 
-def test_render_returns_rgb_where_gl_exists():
-    env = envs.make("cheetah-6x1", render_mode="rgb_array")
-    env.reset(seed=0)
-    try:
-        frame = env.render()
-    except RuntimeError as error:
+@pytest.mark.parametrize("env_id", ["cheetah-6x1", "mamujoco:HalfCheetah-6x1"])
+def test_render_returns_rgb_where_gl_exists(env_id):
+    try:  # this module imports mujoco before mat_sdk sets MUJOCO_GL; frames must not care
+        envs.make_team("cheetah-6x1").physics.render(height=24, width=32)
+    except Exception as error:
         pytest.skip(f"no GL backend here: {error}")
+    env = envs.make(env_id, render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
     assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8 and frame.std() > 0
+    env.close()
+
+
+def test_the_game_says_it_has_nothing_to_render():
+    with pytest.raises(RuntimeError, match="coordination-3 has no picture to render"):
+        envs.make("coordination-3", render_mode="rgb_array").render()
 
 
 def test_swimmer_family_and_spec_errors():

@@ -30,6 +30,14 @@ def invalid_action(
     return tuple(int(i) for i in np.argwhere(~valid)[0]), problem
 
 
+def render_failed(error: Exception) -> RuntimeError:
+    """The error for a frame MuJoCo could not render: what to install and set."""
+    return RuntimeError(
+        f"rendering failed ({error}); install a GL backend and set MUJOCO_GL=egl "
+        "(GPU) or MUJOCO_GL=osmesa (CPU, Debian package libosmesa6)"
+    )
+
+
 class ArrayTeam:
     """A team stepped with arrays: actions `[n_agents, act_dim]` in, obs `[n_agents, obs_dim]`,
     the shared reward and the episode flags out.
@@ -46,6 +54,7 @@ class ArrayTeam:
     env_id: str
     action_type: str
     n_actions: int  # continuous: act_dim; discrete: the number of choices
+    control_timestep: float  # simulated seconds per env step (robots; MaMuJoCo)
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
         """Apply `actions [n_agents, act_dim]`; returns obs, reward, terminated, truncated.
@@ -73,3 +82,7 @@ class ArrayTeam:
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         """`step` for actions already checked: a float64 `[n_agents, act_dim]` array."""
         raise NotImplementedError
+
+    def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
+        """An RGB frame `[height, width, 3]`; the physics envs override this."""
+        raise RuntimeError(f"{self.env_id} has no picture to render; record a robot's episode")

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam, checked_episode_limit
+from mat_sdk.envs.base import ArrayTeam, checked_episode_limit, render_failed
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
@@ -59,6 +59,8 @@ class MaMuJoCoTeam(ArrayTeam):
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
         self.episode_limit = checked_episode_limit(episode_limit, spec_limit or 1000)
         self._action_mask = self._fault_mask(faults or {})
+        self.control_timestep = float(self._env.single_agent_env.unwrapped.dt)
+        self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
         self._steps = 0
 
@@ -139,8 +141,26 @@ class MaMuJoCoTeam(ArrayTeam):
     def state(self) -> np.ndarray:
         return np.asarray(self._env.state(), dtype=np.float32)
 
-    def render(self) -> np.ndarray:
-        raise RuntimeError("rendering MaMuJoCo envs is not supported; use a mat_sdk robot id")
+    def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
+        """An RGB frame `[height, width, 3]` from the model's camera `camera_id` (HalfCheetah's
+        first camera tracks the robot; a model without cameras gets the free camera).
+
+        Drawn by dm_control from a copy of the scene, as our robots are: dm_control picks its
+        GL backend (MUJOCO_GL) at the first frame, where `mujoco.Renderer` would take the one
+        in force when `mujoco` was first imported.
+        """
+        import mujoco
+        from dm_control.mujoco import Physics, wrapper
+
+        env = self._env.single_agent_env.unwrapped
+        try:
+            if self._picture is None:
+                self._picture = Physics.from_model(wrapper.MjModel(env.model))
+            mujoco.mj_copyData(self._picture.data.ptr, env.model, env.data)
+            camera = camera_id if env.model.ncam else -1
+            return self._picture.render(height=height, width=width, camera_id=camera)
+        except Exception as error:
+            raise render_failed(error) from error
 
     def close(self) -> None:
         self._env.close()

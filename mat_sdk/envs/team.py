@@ -17,7 +17,7 @@ from collections.abc import Mapping
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam, checked_episode_limit
+from mat_sdk.envs.base import ArrayTeam, checked_episode_limit, render_failed
 from mat_sdk.envs.decomposition import (
     actuator_joints,
     decompose,
@@ -58,7 +58,8 @@ class RobotTeam(ArrayTeam):
         self.physics = self._env.physics
         self._task = self._env.task
         self._model, self._data = self.physics.model.ptr, self.physics.data.ptr
-        self.substeps = round(self._env.control_timestep() / self._model.opt.timestep)
+        self.control_timestep = self._env.control_timestep()
+        self.substeps = round(self.control_timestep / self._model.opt.timestep)
         self.episode_limit = checked_episode_limit(episode_limit, self._env._step_limit)
         self.agent_id = (not spec.variable_count) if agent_id is None else bool(agent_id)
 
@@ -240,7 +241,4 @@ class RobotTeam(ArrayTeam):
         try:
             return self.physics.render(height=height, width=width, camera_id=camera_id)
         except Exception as error:
-            raise RuntimeError(
-                f"rendering failed ({error}); install a GL backend and set MUJOCO_GL=egl "
-                "(GPU) or MUJOCO_GL=osmesa (CPU, Debian package libosmesa6)"
-            ) from error
+            raise render_failed(error) from error
