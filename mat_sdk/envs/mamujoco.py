@@ -72,8 +72,7 @@ class MaMuJoCoTeam(ArrayTeam):
         return self._pack(obs)
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        actions = np.clip(actions, -1.0, 1.0)
-        actions = actions * self._action_mask
+        actions = np.clip(actions, -1.0, 1.0) * self._action_mask  # faults zero their entries
         per_agent = {
             name: actions[row, : self.act_dims[row]] for row, name in enumerate(self.agents)
         }
