@@ -8,6 +8,7 @@ hold no code.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ import torch
 FORMAT = "mat-checkpoint"
 VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"  # a run directory's checkpoint
+ZIP_MAGIC = b"PK\x03\x04"  # torch.save writes a zip archive
 
 
 class CheckpointError(ValueError):
@@ -64,11 +66,18 @@ def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
         raise CheckpointError(f"{path} is a directory, not a checkpoint; {_directory_hint(path)}")
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
+    with path.open("rb") as file:
+        if file.read(4) != ZIP_MAGIC:
+            raise CheckpointError(
+                f"{path} is not a MAT checkpoint (not a torch file: pass the checkpoint.pt "
+                "that `mat train` wrote)"
+            )
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:
         raise CheckpointError(
-            f"{path} is not a MAT checkpoint (torch.load failed: {error})"
+            f"{path} is not a MAT checkpoint (a weights-only torch.load refused it: "
+            f"{_refusal(error)})"
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a MAT checkpoint (no 'format': '{FORMAT}' field)")
@@ -78,6 +87,13 @@ def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
             f"({VERSION}); upgrade mat-sdk"
         )
     return payload
+
+
+def _refusal(error: Exception) -> str:
+    """The specific part of torch's long unpickling message (its advice to drop
+    weights_only would let the file run code, so it is not passed on)."""
+    found = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\. Please|\n|$)", str(error))
+    return found.group(1) if found else str(error).splitlines()[0]
 
 
 def _directory_hint(directory: Path) -> str:

@@ -186,8 +186,15 @@ def test_bad_input_gives_clear_errors(tmp_path):
         assert trainer.progress["steps"] == 0  # refused before any rollout
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
-    with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint"):
+    with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint .not a torch"):
         Trainer.load(not_a_checkpoint)
+    pickled_object = tmp_path / "object.pt"
+    torch.save({"format": "mat-checkpoint", "path": tmp_path}, pickled_object)
+    with pytest.raises(
+        checkpoint.CheckpointError, match="weights-only torch.load refused"
+    ) as refused:
+        Trainer.load(pickled_object)
+    assert "\n" not in str(refused.value) and "Re-running" not in str(refused.value)
     with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at"):
         Trainer.load(tmp_path / "missing.pt")
     newer = tmp_path / "newer.pt"
