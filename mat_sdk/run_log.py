@@ -98,7 +98,14 @@ def plot_runs(
         return None
     for label, value in (references or {}).items():
         ax.axhline(value, linestyle="--", color="gray", linewidth=1)
-        ax.annotate(label, (0, value), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
+        ax.annotate(  # at the right edge: the legend takes a corner on the left
+            label,
+            (0.99, value),
+            xycoords=("axes fraction", "data"),
+            ha="right",
+            va="bottom",
+            fontsize=8,
+        )
     ax.set_xlabel("env steps")
     ax.set_ylabel("episode return")
     ax.set_title(title or ", ".join(runs))
