@@ -93,7 +93,7 @@ def _refusal(error: Exception) -> str:
     """The specific part of torch's long unpickling message (its advice to drop
     weights_only would let the file run code, so it is not passed on)."""
     found = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\. Please|\n|$)", str(error))
-    return found.group(1) if found else str(error).splitlines()[0]
+    return found.group(1) if found else (str(error).splitlines() or [type(error).__name__])[0]
 
 
 def _directory_hint(directory: Path) -> str:
