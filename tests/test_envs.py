@@ -1,5 +1,11 @@
 """Multi-agent robots: PettingZoo API, decomposition, seeding, faults, bad input."""
 
+import os
+import signal
+import subprocess
+import sys
+import time
+
 import gymnasium
 import mujoco
 import numpy as np
@@ -373,3 +379,68 @@ def test_vector_env_reports_a_worker_that_fails_to_start():
     with pytest.raises(RuntimeError, match="env worker failed") as error:
         VecTeam(factory, num_envs=2, workers=1)
     assert "no team for seed 1" in str(error.value)
+
+
+def _team_that_breaks_in_a_worker(seed):
+    team = envs.make_team("hopper-4x1", seed=seed)
+    if seed:  # only the worker's copy (seed 1) breaks, on its third step
+        advance, calls = team.advance, iter(range(3))
+
+        def breaking_advance(actions):
+            if next(calls, None) is None:
+                raise FloatingPointError("the simulation diverged")
+            return advance(actions)
+
+        team.advance = breaking_advance
+    return team
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_vector_env_reports_a_worker_that_fails_or_dies_mid_run(workers):
+    factory = TeamFactory(_team_that_breaks_in_a_worker, {})
+    vec = VecTeam(factory, num_envs=workers + 1, workers=workers)
+    vec.reset()
+    actions = np.zeros((workers + 1, 4, 1))
+    for _ in range(3):
+        vec.step(actions)
+    with pytest.raises(RuntimeError, match="env worker failed") as error:
+        vec.step(actions)
+    assert "FloatingPointError: the simulation diverged" in str(error.value)
+    with pytest.raises(RuntimeError, match="closed"):
+        vec.step(actions)
+
+    with envs.make_vec("hopper-4x1", num_envs=2, workers=1) as vec:
+        vec.reset()
+        vec._processes[0].kill()
+        vec._processes[0].join()
+        with pytest.raises(RuntimeError, match="a worker process died"):
+            vec.step(np.zeros((2, 4, 1)))
+
+
+def _exited(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="needs Linux /proc")
+def test_workers_exit_when_their_parent_is_killed():
+    script = (
+        "import os, signal; from mat_sdk import envs\n"
+        "vec = envs.make_vec('hopper-4x1', num_envs=2, workers=1)\n"
+        "vec.reset()\n"
+        "print(vec._processes[0].pid, flush=True)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    worker = int(parent.stdout.readline())
+    parent.wait(timeout=60)
+    deadline = time.monotonic() + 10
+    while not _exited(worker) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    orphaned = not _exited(worker)
+    if orphaned:
+        os.kill(worker, signal.SIGKILL)
+    assert not orphaned, "an orphaned env worker kept running after its parent was killed"

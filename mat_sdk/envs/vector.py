@@ -1,10 +1,11 @@
 """E copies of a team stepped as arrays, in this process or in worker processes.
 
-Workers share every array with the parent through shared memory: per step only a one-word
-command crosses the pipe, never observations. Copy i is seeded with `seed + i` and owns its
-random stream, so the same seed gives the same trajectories whatever the worker count.
-Finished episodes reset automatically; the last observation of the finished episode is in
-`info["final_obs"]` (for bootstrapping a truncated episode).
+Workers share every array with the parent through shared memory. A step crosses no pipe:
+two semaphores say "go" and "done" (`_Handshake`). The pipe carries only errors and the rare
+commands with arguments or results (reset, get and set state). Copy i is seeded with
+`seed + i` and owns its random stream, so the same seed gives the same trajectories whatever
+the worker count. Finished episodes reset automatically; the last observation of the
+finished episode is in `info["final_obs"]` (for bootstrapping a truncated episode).
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import contextlib
 import itertools
 import multiprocessing as mp
+import os
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -104,22 +107,76 @@ class _EnvSlice:
             self._returns[k], self._lengths[k] = state["return"], state["length"]
 
 
+_SPIN_SECONDS = 0.002
+_MESSAGE, _FAILED = 0, 1  # the handshake's flags
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+class _Handshake:
+    """The per-step signal between the caller and one worker, without the pipe.
+
+    The caller releases `go`, the worker releases `done`; a semaphore's release and acquire
+    also order the shared-memory writes around them, on every architecture. A waiting side
+    polls its semaphore for `spin_seconds` before it sleeps: waking a sleeping process costs
+    ~20 µs each way plus a cold core, ~15 % of a 20-copy cheetah step (BENCHMARKS.md). Spin
+    only when every process has a core of its own, or the spinning steals the stepping.
+    """
+
+    def __init__(self, context, spin_seconds: float):
+        self.go, self.done = context.Semaphore(0), context.Semaphore(0)
+        self.flags = context.RawArray("b", 2)  # [_MESSAGE]: a command waits on the pipe
+        self.spin_seconds = spin_seconds
+
+    def wait(self, semaphore, alive: Callable[[], bool]) -> bool:
+        """Take `semaphore`; False if the other side died while we waited."""
+        deadline = time.perf_counter() + self.spin_seconds
+        while time.perf_counter() < deadline:
+            if semaphore.acquire(False):
+                return True
+        while not semaphore.acquire(timeout=1.0):
+            if not alive():
+                return False
+        return True
+
+
 def _worker(
-    conn: Connection, make_team: Callable, seeds: list[int], start: int, sizes, num_envs, raw
+    conn: Connection,
+    handshake: _Handshake,
+    make_team: Callable,
+    seeds: list[int],
+    start: int,
+    sizes,
+    num_envs,
+    raw,
 ):
+    parent_alive = mp.parent_process().is_alive  # an orphaned worker exits
+    flags = handshake.flags
     try:
         teams = [make_team(seed) for seed in seeds]
         envs = _EnvSlice(teams, start, _Buffers(sizes, num_envs, raw=raw))
         conn.send(("ok", None))
-        while True:
-            command, argument = conn.recv()
-            if command == "close":
-                break
-            conn.send(("ok", getattr(envs, command)(*argument)))
+        handshake.done.release()
+        while handshake.wait(handshake.go, parent_alive):
+            if flags[_MESSAGE]:
+                command, argument = conn.recv()
+                if command == "close":
+                    break
+                conn.send(("ok", getattr(envs, command)(*argument)))
+            else:
+                envs.step()
+            handshake.done.release()
     except KeyboardInterrupt:
         pass
     except Exception:
+        flags[_FAILED] = 1
         conn.send(("error", traceback.format_exc()))
+        handshake.done.release()
     finally:
         conn.close()
 
@@ -178,6 +235,7 @@ class VecTeam:
         seeds = [seed + i for i in range(num_envs)]
         self._closed = False  # before the workers start: a failing one closes the rest
         self._pipes: list[Connection] = []
+        self._handshakes: list[_Handshake] = []
         self._processes: list[mp.Process] = []
         bounds = np.linspace(0, num_envs, workers + 2).astype(int)  # this process's share first
         self._slices = bounds
@@ -185,12 +243,15 @@ class VecTeam:
         self._local = _EnvSlice(teams, 0, self._buffers)
         if workers:
             context = mp.get_context("spawn")
+            spin = _SPIN_SECONDS if workers + 1 <= _usable_cores() else 0.0
             for lo, hi in itertools.pairwise(bounds[1:]):
                 parent, child = context.Pipe()
+                handshake = _Handshake(context, spin)
                 process = context.Process(
                     target=_worker,
                     args=(
                         child,
+                        handshake,
                         make_team,
                         seeds[lo:hi],
                         int(lo),
@@ -203,8 +264,9 @@ class VecTeam:
                 process.start()
                 child.close()
                 self._pipes.append(parent)
+                self._handshakes.append(handshake)
                 self._processes.append(process)
-            self._wait()
+            self._wait(message=True)
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset every copy; with a seed, copy i restarts its random stream at `seed + i`."""
@@ -254,9 +316,11 @@ class VecTeam:
         if self._closed:
             return
         self._closed = True
-        for pipe in self._pipes:
+        for pipe, handshake in zip(self._pipes, self._handshakes, strict=True):
+            handshake.flags[_MESSAGE] = 1
             with contextlib.suppress(BrokenPipeError, OSError):
                 pipe.send(("close", ()))
+            handshake.go.release()
         for process in self._processes:
             process.join(timeout=5)
             if process.is_alive():
@@ -273,22 +337,34 @@ class VecTeam:
             self.close()
 
     def _run(self, command: str, arguments: list) -> list:
-        """Run `_EnvSlice.<command>(*arguments[k])` on every slice k; their results in order."""
+        """Run `_EnvSlice.<command>(*arguments[k])` on every slice k; their results in order.
+
+        A step needs no pipe: its actions are already in shared memory.
+        """
         if self._closed:
             raise RuntimeError("this vectorised env is closed")
-        for pipe, argument in zip(self._pipes, arguments[1:], strict=True):
-            pipe.send((command, argument))
+        message = command != "step"
+        for pipe, handshake, argument in zip(
+            self._pipes, self._handshakes, arguments[1:], strict=True
+        ):
+            handshake.flags[_MESSAGE] = message
+            if message:
+                pipe.send((command, argument))
+            handshake.go.release()
         local = getattr(self._local, command)(*arguments[0])
-        return [local, *self._wait()]
+        return [local, *self._wait(message)]
 
-    def _wait(self) -> list:
+    def _wait(self, message: bool) -> list:
+        """Wait for every worker; with `message`, collect the results from their pipes."""
         results, errors = [], []
-        for pipe in self._pipes:
-            try:
+        for pipe, handshake, process in zip(
+            self._pipes, self._handshakes, self._processes, strict=True
+        ):
+            if not handshake.wait(handshake.done, process.is_alive):
+                errors.append("a worker process died")
+            elif message or handshake.flags[_FAILED]:
                 status, detail = pipe.recv()
-            except EOFError:
-                status, detail = "error", "a worker process died"
-            (errors if status == "error" else results).append(detail)
+                (errors if status == "error" else results).append(detail)
         if errors:
             self.close()
             raise RuntimeError("env worker failed:\n" + errors[0])
