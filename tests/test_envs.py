@@ -13,6 +13,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs
+from mat_sdk.envs import vector
 from mat_sdk.envs.robots import spec_for
 from mat_sdk.envs.vector import TeamFactory, VecTeam
 
@@ -308,7 +309,10 @@ def test_quadruped_tendon_actuators_own_several_joints():
     ]
 
 
-def test_vector_env_same_trajectories_whatever_the_worker_count():
+@pytest.mark.parametrize("cores", [1, 64], ids=["caller-waits", "caller-steps-a-share"])
+def test_vector_env_same_trajectories_whatever_the_worker_count(cores, monkeypatch):
+    monkeypatch.setattr(vector, "usable_cores", lambda: cores)
+
     def run(workers):
         with envs.make_vec(
             "hopper-4x1", num_envs=4, workers=workers, seed=3, episode_limit=12

@@ -8,6 +8,7 @@ import numpy as np
 
 from mat_sdk import envs
 from mat_sdk.bench import compare, print_table
+from mat_sdk.envs import vector
 
 ROBOTS = (
     "cheetah-6x1",
@@ -70,7 +71,7 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
     All three run side by side in interleaved rounds, together with the machine's own
     ceiling: two equal CPU-bound jobs in two processes vs one after the other in one.
     """
-    labels = {0: "in-process", 1: "caller + 1 worker process", 2: "caller + 2 worker processes"}
+    labels = {0: "in-process", **{w: _split_label(w) for w in (1, 2)}}
     vecs = {w: envs.make_vec(env_id, num_envs, workers=w, seed=0) for w in labels}
     pool = mp.get_context("spawn").Pool(2)
     try:
@@ -105,6 +106,13 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
         }
     )
     return rows
+
+
+def _split_label(workers: int) -> str:
+    plural = "es" if workers > 1 else ""
+    if workers + 1 <= vector.usable_cores():
+        return f"caller + {workers} worker process{plural}"
+    return f"{workers} worker process{plural} (the caller waits: {vector.usable_cores()} cores)"
 
 
 def _burn(iterations: int) -> int:

@@ -111,7 +111,8 @@ _SPIN_SECONDS = 0.002
 _MESSAGE, _FAILED = 0, 1  # the handshake's flags
 
 
-def _usable_cores() -> int:
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity), which decides how copies are split."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
@@ -210,8 +211,10 @@ class VecTeam:
     """`num_envs` copies of a team: `obs [E, n, obs_dim]`, `reward [E]`, `terminated [E]`...
 
     `workers=0` steps every copy in this process. `workers=W` splits the copies over this
-    process and W worker processes: the caller steps its own share while the workers step
-    theirs, instead of idling while it waits for them.
+    process and W worker processes when there is a core for each: the caller steps its own
+    share while the workers step theirs, instead of idling while it waits for them. With
+    fewer cores than W + 1, the workers step every copy and the caller only waits, since a
+    third process on two cores slows every step (1.25x against 1.68x, BENCHMARKS.md).
     """
 
     def __init__(self, make_team: TeamFactory, num_envs: int, workers: int = 0, seed: int = 0):
@@ -237,13 +240,15 @@ class VecTeam:
         self._pipes: list[Connection] = []
         self._handshakes: list[_Handshake] = []
         self._processes: list[mp.Process] = []
-        bounds = np.linspace(0, num_envs, workers + 2).astype(int)  # this process's share first
+        has_core = workers + 1 <= usable_cores()  # for this process to step a share too
+        parts = np.linspace(0, num_envs, workers + 1 + has_core).astype(int)
+        bounds = parts if has_core else np.concatenate([[0], parts])  # this process's share first
         self._slices = bounds
-        teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])]
+        teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])][: bounds[1]]
         self._local = _EnvSlice(teams, 0, self._buffers)
         if workers:
             context = mp.get_context("spawn")
-            spin = _SPIN_SECONDS if workers + 1 <= _usable_cores() else 0.0
+            spin = _SPIN_SECONDS if has_core else 0.0
             for lo, hi in itertools.pairwise(bounds[1:]):
                 parent, child = context.Pipe()
                 handshake = _Handshake(context, spin)
