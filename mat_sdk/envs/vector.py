@@ -244,7 +244,7 @@ class VecTeam:
         parts = np.linspace(0, num_envs, workers + 1 + has_core).astype(int)
         bounds = parts if has_core else np.concatenate([[0], parts])  # this process's share first
         self._slices = bounds
-        teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])][: bounds[1]]
+        teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])] if bounds[1] else []
         self._local = _EnvSlice(teams, 0, self._buffers)
         if workers:
             context = mp.get_context("spawn")
