@@ -167,7 +167,11 @@ def parse_settings(values: tuple[str, ...]) -> dict:
 @click.option("--steps", default=1_000_000, show_default=True, help="Total env steps.")
 @click.option("--num-envs", default=40, show_default=True, help="Env copies per rollout.")
 @click.option(
-    "--workers", default=0, show_default=True, help="Env worker processes (0: in-process)."
+    "--workers",
+    default=0,
+    show_default=True,
+    help="Env worker processes (0: in-process). This process steps a share too when it has a "
+    "core left, so on C cores use at most C - 1.",
 )
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu | cuda | auto")
