@@ -71,8 +71,8 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
     All three run side by side in interleaved rounds, together with the machine's own
     ceiling: two equal CPU-bound jobs in two processes vs one after the other in one.
     """
-    labels = {0: "in-process", **{w: _split_label(w) for w in (1, 2)}}
-    vecs = {w: envs.make_vec(env_id, num_envs, workers=w, seed=0) for w in labels}
+    vecs = {w: envs.make_vec(env_id, num_envs, workers=w, seed=0) for w in (0, 1, 2)}
+    labels = {0: "in-process", **{w: _split_label(vecs[w]) for w in (1, 2)}}
     pool = mp.get_context("spawn").Pool(2)
     try:
         shape = (num_envs, vecs[0].n_agents, vecs[0].act_dim)
@@ -108,11 +108,11 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
     return rows
 
 
-def _split_label(workers: int) -> str:
-    plural = "es" if workers > 1 else ""
-    if workers + 1 <= vector.usable_cores():
-        return f"caller + {workers} worker process{plural}"
-    return f"{workers} worker process{plural} (the caller waits: {vector.usable_cores()} cores)"
+def _split_label(vec: envs.VecTeam) -> str:
+    processes = f"{vec.workers} worker process{'es' if vec.workers > 1 else ''}"
+    if vec.caller_steps:
+        return f"caller + {processes}"
+    return f"{processes} (the caller waits: {vector.usable_cores()} cores)"
 
 
 def _burn(iterations: int) -> int:

@@ -240,15 +240,16 @@ class VecTeam:
         self._pipes: list[Connection] = []
         self._handshakes: list[_Handshake] = []
         self._processes: list[mp.Process] = []
-        has_core = workers + 1 <= usable_cores()  # for this process to step a share too
-        parts = np.linspace(0, num_envs, workers + 1 + has_core).astype(int)
-        bounds = parts if has_core else np.concatenate([[0], parts])  # this process's share first
+        # This process steps a share too when it has a core for it.
+        self.caller_steps = workers + 1 <= usable_cores()
+        parts = np.linspace(0, num_envs, workers + 1 + self.caller_steps).astype(int)
+        bounds = parts if self.caller_steps else np.concatenate([[0], parts])  # its share first
         self._slices = bounds
         teams = [probe, *(make_team(s) for s in seeds[1 : bounds[1]])] if bounds[1] else []
         self._local = _EnvSlice(teams, 0, self._buffers)
         if workers:
             context = mp.get_context("spawn")
-            spin = _SPIN_SECONDS if has_core else 0.0
+            spin = _SPIN_SECONDS if self.caller_steps else 0.0
             for lo, hi in itertools.pairwise(bounds[1:]):
                 parent, child = context.Pipe()
                 handshake = _Handshake(context, spin)
