@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from mat_sdk import envs
-from mat_sdk.envs import vector
+from mat_sdk import envs, processes
 from mat_sdk.envs.robots import spec_for
 from mat_sdk.envs.vector import TeamFactory, VecTeam
 
@@ -311,7 +310,7 @@ def test_quadruped_tendon_actuators_own_several_joints():
 
 @pytest.mark.parametrize("cores", [1, 64], ids=["caller-waits", "caller-steps-a-share"])
 def test_vector_env_same_trajectories_whatever_the_worker_count(cores, monkeypatch):
-    monkeypatch.setattr(vector, "usable_cores", lambda: cores)
+    monkeypatch.setattr(processes, "usable_cores", lambda: cores)
 
     def run(workers):
         with envs.make_vec(
@@ -415,8 +414,8 @@ def test_vector_env_reports_a_worker_that_fails_or_dies_mid_run(workers):
 
     with envs.make_vec("hopper-4x1", num_envs=2, workers=1) as vec:
         vec.reset()
-        vec._processes[0].kill()
-        vec._processes[0].join()
+        vec._workers[0].process.kill()
+        vec._workers[0].process.join()
         with pytest.raises(RuntimeError, match="a worker process died"):
             vec.step(np.zeros((2, 4, 1)))
 
@@ -435,7 +434,7 @@ def test_workers_exit_when_their_parent_is_killed():
         "import os, signal; from mat_sdk import envs\n"
         "vec = envs.make_vec('hopper-4x1', num_envs=2, workers=1)\n"
         "vec.reset()\n"
-        "print(vec._processes[0].pid, flush=True)\n"
+        "print(vec._workers[0].process.pid, flush=True)\n"
         "os.kill(os.getpid(), signal.SIGKILL)\n"
     )
     parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)

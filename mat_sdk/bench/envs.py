@@ -8,7 +8,7 @@ import numpy as np
 
 from mat_sdk import envs
 from mat_sdk.bench import compare, print_table
-from mat_sdk.envs import vector
+from mat_sdk.processes import usable_cores
 
 ROBOTS = (
     "cheetah-6x1",
@@ -109,10 +109,10 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
 
 
 def _split_label(vec: envs.VecTeam) -> str:
-    processes = f"{vec.workers} worker process{'es' if vec.workers > 1 else ''}"
+    workers = f"{vec.workers} worker process{'es' if vec.workers > 1 else ''}"
     if vec.caller_steps:
-        return f"caller + {processes}"
-    return f"{processes} (the caller waits: {vector.usable_cores()} cores)"
+        return f"caller + {workers}"
+    return f"{workers} (the caller waits: {usable_cores()} cores)"
 
 
 def _burn(iterations: int) -> int:

@@ -1,8 +1,8 @@
 """E copies of a team stepped as arrays, in this process or in worker processes.
 
 Workers share every array with the parent through shared memory. A step crosses no pipe:
-two semaphores say "go" and "done" (`_Handshake`). The pipe carries only errors and the rare
-commands with arguments or results (reset, get and set state). Copy i is seeded with
+two semaphores say "go" and "done" (`mat_sdk.processes`). The pipe carries only errors and
+the rare commands with arguments or results (reset, get and set state). Copy i is seeded with
 `seed + i` and owns its random stream, so the same seed gives the same trajectories whatever
 the worker count. Finished episodes reset automatically; the last observation of the
 finished episode is in `info["final_obs"]` (for bootstrapping a truncated episode).
@@ -10,20 +10,17 @@ finished episode is in `info["final_obs"]` (for bootstrapping a truncated episod
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import multiprocessing as mp
-import os
-import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
+from mat_sdk import processes
 from mat_sdk.envs.base import invalid_action
+from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
 _FIELDS = {  # name: (shape after [num_envs], dtype)
     "actions": (("n", "act"), np.float64),
@@ -107,79 +104,14 @@ class _EnvSlice:
             self._returns[k], self._lengths[k] = state["return"], state["length"]
 
 
-_SPIN_SECONDS = 0.002
-_MESSAGE, _FAILED = 0, 1  # the handshake's flags
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its affinity), which decides how copies are split."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-class _Handshake:
-    """The per-step signal between the caller and one worker, without the pipe.
-
-    The caller releases `go`, the worker releases `done`; a semaphore's release and acquire
-    also order the shared-memory writes around them, on every architecture. A waiting side
-    polls its semaphore for `spin_seconds` before it sleeps: waking a sleeping process costs
-    ~20 µs each way plus a cold core, ~15 % of a 20-copy cheetah step (BENCHMARKS.md). Spin
-    only when every process has a core of its own, or the spinning steals the stepping.
-    """
-
-    def __init__(self, context, spin_seconds: float):
-        self.go, self.done = context.Semaphore(0), context.Semaphore(0)
-        self.flags = context.RawArray("b", 2)  # [_MESSAGE]: a command waits on the pipe
-        self.spin_seconds = spin_seconds
-
-    def wait(self, semaphore, alive: Callable[[], bool]) -> bool:
-        """Take `semaphore`; False if the other side died while we waited."""
-        deadline = time.perf_counter() + self.spin_seconds
-        while time.perf_counter() < deadline:
-            if semaphore.acquire(False):
-                return True
-        while not semaphore.acquire(timeout=1.0):
-            if not alive():
-                return False
-        return True
-
-
 def _worker(
-    conn: Connection,
-    handshake: _Handshake,
-    make_team: Callable,
-    seeds: list[int],
-    start: int,
-    sizes,
-    num_envs,
-    raw,
+    conn, handshake, make_team: Callable, seeds: list[int], start: int, sizes, num_envs, raw
 ):
-    parent_alive = mp.parent_process().is_alive  # an orphaned worker exits
-    flags = handshake.flags
-    try:
+    def setup() -> _EnvSlice:
         teams = [make_team(seed) for seed in seeds]
-        envs = _EnvSlice(teams, start, _Buffers(sizes, num_envs, raw=raw))
-        conn.send(("ok", None))
-        handshake.done.release()
-        while handshake.wait(handshake.go, parent_alive):
-            if flags[_MESSAGE]:
-                command, argument = conn.recv()
-                if command == "close":
-                    break
-                conn.send(("ok", getattr(envs, command)(*argument)))
-            else:
-                envs.step()
-            handshake.done.release()
-    except KeyboardInterrupt:
-        pass
-    except Exception:
-        flags[_FAILED] = 1
-        conn.send(("error", traceback.format_exc()))
-        handshake.done.release()
-    finally:
-        conn.close()
+        return _EnvSlice(teams, start, _Buffers(sizes, num_envs, raw=raw))
+
+    serve(conn, handshake, setup)
 
 
 _TEAM_ATTRIBUTES = (
@@ -237,11 +169,9 @@ class VecTeam:
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
         self._closed = False  # before the workers start: a failing one closes the rest
-        self._pipes: list[Connection] = []
-        self._handshakes: list[_Handshake] = []
-        self._processes: list[mp.Process] = []
+        self._workers: list[WorkerProcess] = []
         # This process steps a share too when it has a core for it.
-        self.caller_steps = workers + 1 <= usable_cores()
+        self.caller_steps = workers + 1 <= processes.usable_cores()
         parts = np.linspace(0, num_envs, workers + 1 + self.caller_steps).astype(int)
         bounds = parts if self.caller_steps else np.concatenate([[0], parts])  # its share first
         self._slices = bounds
@@ -249,30 +179,11 @@ class VecTeam:
         self._local = _EnvSlice(teams, 0, self._buffers)
         if workers:
             context = mp.get_context("spawn")
-            spin = _SPIN_SECONDS if self.caller_steps else 0.0
+            spin = processes.SPIN_SECONDS if self.caller_steps else 0.0
             for lo, hi in itertools.pairwise(bounds[1:]):
-                parent, child = context.Pipe()
-                handshake = _Handshake(context, spin)
-                process = context.Process(
-                    target=_worker,
-                    args=(
-                        child,
-                        handshake,
-                        make_team,
-                        seeds[lo:hi],
-                        int(lo),
-                        sizes,
-                        num_envs,
-                        self._buffers.raw,
-                    ),
-                    daemon=True,
-                )
-                process.start()
-                child.close()
-                self._pipes.append(parent)
-                self._handshakes.append(handshake)
-                self._processes.append(process)
-            self._wait(message=True)
+                arguments = (make_team, seeds[lo:hi], int(lo), sizes, num_envs, self._buffers.raw)
+                self._workers.append(WorkerProcess(context, _worker, arguments, spin))
+            self._wait()
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Reset every copy; with a seed, copy i restarts its random stream at `seed + i`."""
@@ -322,15 +233,7 @@ class VecTeam:
         if self._closed:
             return
         self._closed = True
-        for pipe, handshake in zip(self._pipes, self._handshakes, strict=True):
-            handshake.flags[_MESSAGE] = 1
-            with contextlib.suppress(BrokenPipeError, OSError):
-                pipe.send(("close", ()))
-            handshake.go.release()
-        for process in self._processes:
-            process.join(timeout=5)
-            if process.is_alive():
-                process.terminate()
+        close_all(self._workers)
 
     def __enter__(self) -> VecTeam:
         return self
@@ -349,29 +252,10 @@ class VecTeam:
         """
         if self._closed:
             raise RuntimeError("this vectorised env is closed")
-        message = command != "step"
-        for pipe, handshake, argument in zip(
-            self._pipes, self._handshakes, arguments[1:], strict=True
-        ):
-            handshake.flags[_MESSAGE] = message
-            if message:
-                pipe.send((command, argument))
-            handshake.go.release()
+        for worker, argument in zip(self._workers, arguments[1:], strict=True):
+            worker.go(None if command == "step" else command, argument)
         local = getattr(self._local, command)(*arguments[0])
-        return [local, *self._wait(message)]
+        return [local, *self._wait()]
 
-    def _wait(self, message: bool) -> list:
-        """Wait for every worker; with `message`, collect the results from their pipes."""
-        results, errors = [], []
-        for pipe, handshake, process in zip(
-            self._pipes, self._handshakes, self._processes, strict=True
-        ):
-            if not handshake.wait(handshake.done, process.is_alive):
-                errors.append("a worker process died")
-            elif message or handshake.flags[_FAILED]:
-                status, detail = pipe.recv()
-                (errors if status == "error" else results).append(detail)
-        if errors:
-            self.close()
-            raise RuntimeError("env worker failed:\n" + errors[0])
-        return results
+    def _wait(self) -> list:
+        return wait_all(self._workers, "env worker failed", self.close)
