@@ -27,6 +27,12 @@ ACTION_TYPES = ("continuous", "discrete")
 UNAVAILABLE_LOGIT = -1e10
 
 
+def permute_agents(x: Tensor, order: Tensor) -> Tensor:
+    """x [B, n, ...] reordered along agents by order [B, n]."""
+    index = order.view(*order.shape, *([1] * (x.dim() - 2))).expand_as(x)
+    return x.gather(1, index)
+
+
 @dataclass
 class ModelConfig:
     obs_dim: int

@@ -12,10 +12,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from mat_sdk.model import Policy, permute_agents
+
+if TYPE_CHECKING:
+    from mat_sdk.trainer import TrainConfig
 
 
 def gae(
@@ -76,3 +82,33 @@ def ppo_loss(
     total = policy_loss - entropy_coef * entropy + value_coef * value_loss
     clip_fraction = ((ratio - 1).abs() > clip).float().mean()
     return LossTerms(total, policy_loss, value_loss, entropy, clip_fraction)
+
+
+def minibatch_loss(
+    policy: Policy, mb: dict[str, Tensor], targets: Tensor, config: TrainConfig
+) -> LossTerms:
+    """The PPO loss terms of one minibatch; `targets` are its normalised returns.
+
+    Agents are evaluated in the order they acted in (`mb["order"]`, where the rollout
+    shuffled them); the results come back in canonical order.
+    """
+    obs, actions, order = mb["obs"], mb["actions"], mb.get("order")
+    if order is None:
+        log_prob, entropy, values = policy.evaluate(obs, actions)
+    else:
+        inverse = order.argsort(dim=1)
+        results = policy.evaluate(permute_agents(obs, order), permute_agents(actions, order))
+        log_prob, entropy, values = (permute_agents(r, inverse) for r in results)
+    return ppo_loss(
+        log_prob,
+        mb["log_probs"],
+        mb["advantages"],
+        entropy,
+        values,
+        mb["values"],
+        targets,
+        config.clip,
+        config.entropy_coef,
+        config.value_coef,
+        config.huber_delta,
+    )

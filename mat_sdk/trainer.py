@@ -26,9 +26,10 @@ import torch
 
 from mat_sdk import checkpoint, envs
 from mat_sdk.checkpoint import CHECKPOINT_NAME
-from mat_sdk.model import ModelConfig, Policy, build_policy
+from mat_sdk.gradients import MinibatchGradients
+from mat_sdk.model import ModelConfig, Policy, build_policy, permute_agents
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
-from mat_sdk.ppo import gae, ppo_loss
+from mat_sdk.ppo import gae
 from mat_sdk.run_log import RunLog
 
 ROLLOUT_BACKENDS = ("torch", "onnx")
@@ -45,7 +46,7 @@ _RULES = (
         "> 0",
     ),
     (
-        ("seed", "workers", "entropy_coef", "value_coef", "torch_threads"),
+        ("seed", "workers", "update_workers", "entropy_coef", "value_coef", "torch_threads"),
         lambda x: x >= 0,
         ">= 0",
     ),
@@ -62,6 +63,9 @@ class TrainConfig:
     seed: int = 0
     num_envs: int = 40
     workers: int = 0
+    # Processes that each compute the gradient of a share of every minibatch (CPU): on 2
+    # cores, 1 makes an update step ~1.4x faster (BENCHMARKS.md). 0: this process alone.
+    update_workers: int = 0
     rollout_length: int = 100
     lr: float = 5e-5
     critic_lr: float | None = None  # MAPPO's critic; None: same as lr
@@ -152,12 +156,6 @@ def _to_numpy(value: Any) -> Any:
     return value
 
 
-def permute_agents(x: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
-    """x [B, n, ...] reordered along agents by order [B, n]."""
-    index = order.view(*order.shape, *([1] * (x.dim() - 2))).expand_as(x)
-    return x.gather(1, index)
-
-
 class Trainer:
     """Stable-Baselines3-style surface: `learn`, `save`, `load`, `predict`."""
 
@@ -207,7 +205,13 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps, fused=True
         )
-        self._loss = torch.compile(self.loss) if cfg.compile else self.loss
+        if cfg.update_workers and self.device.type != "cpu":
+            raise ValueError(
+                "update_workers splits CPU updates over processes; on a GPU use update_workers=0"
+            )
+        self.gradients = MinibatchGradients(
+            self.policy, cfg, cfg.update_workers, "default" if cfg.compile else None
+        )
         self._onnx_actor = None
         if cfg.rollout_backend == "onnx":
             from mat_sdk.onnx_actor import OnnxActor
@@ -255,13 +259,6 @@ class Trainer:
         results = act(
             permute_agents(obs, order), deterministic=deterministic, generator=self.generator
         )
-        return tuple(permute_agents(r, inverse) for r in results)
-
-    def _evaluate(self, obs, actions, order):
-        if order is None:
-            return self.policy.evaluate(obs, actions)
-        inverse = order.argsort(dim=1)
-        results = self.policy.evaluate(permute_agents(obs, order), permute_agents(actions, order))
         return tuple(permute_agents(r, inverse) for r in results)
 
     def predict(self, obs, deterministic: bool = True):
@@ -312,6 +309,13 @@ class Trainer:
                 f"num_minibatches {cfg.num_minibatches} > env-steps per update {per_update} "
                 "(num_envs x rollout_length)"
             )
+        if per_update // cfg.num_minibatches < cfg.update_workers + 1:
+            raise ValueError(
+                f"update_workers {cfg.update_workers}: a minibatch of "
+                f"{per_update // cfg.num_minibatches} env-steps cannot be split "
+                f"{cfg.update_workers + 1} ways; use fewer update workers or minibatches"
+            )
+        self.gradients.start()  # the update workers start up during the first rollout
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         done = self.progress["steps"]
         end = done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
@@ -464,6 +468,7 @@ class Trainer:
         }
         advantages = flat["advantages"]
         flat["advantages"] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        self.gradients.share(flat)
         size = flat["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
         # Accumulate on the device and read once per update: no host sync per minibatch.
@@ -476,16 +481,8 @@ class Trainer:
             permutation = torch.randperm(size, generator=self.shuffle_generator).to(self.device)
             for k in range(cfg.num_minibatches):
                 idx = permutation[k * minibatch : (k + 1) * minibatch]
-                mb = {key: value[idx] for key, value in flat.items()}
-                self.value_norm.update(mb["returns"])
-                terms = self._loss(mb, self.value_norm.normalize(mb["returns"]))
+                terms, grad_norm = self._optimizer_step(flat, idx)
                 finite &= torch.isfinite(terms.total)
-                self.optimizer.zero_grad(set_to_none=True)
-                terms.total.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(
-                    self.policy.parameters(), cfg.max_grad_norm
-                )
-                self.optimizer.step()
                 for key, value in (
                     ("policy_loss", terms.policy),
                     ("value_loss", terms.value),
@@ -502,23 +499,18 @@ class Trainer:
             )
         return {key: float(value) / count for key, value in sums.items()}
 
-    def loss(self, mb: dict[str, torch.Tensor], target_values: torch.Tensor):
-        """PPO loss terms of one minibatch; `target_values` are the normalised returns."""
-        cfg = self.config
-        log_prob, entropy, values = self._evaluate(mb["obs"], mb["actions"], mb.get("order"))
-        return ppo_loss(
-            log_prob,
-            mb["log_probs"],
-            mb["advantages"],
-            entropy,
-            values,
-            mb["values"],
-            target_values,
-            cfg.clip,
-            cfg.entropy_coef,
-            cfg.value_coef,
-            cfg.huber_delta,
+    def _optimizer_step(self, flat: dict[str, torch.Tensor], idx: torch.Tensor):
+        """One PPO step on the minibatch of rows `idx` of the update's batch `flat` (already
+        shared with `self.gradients`); its loss terms and gradient norm before clipping."""
+        returns = flat["returns"][idx]
+        self.value_norm.update(returns)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms = self.gradients.backward(idx, self.value_norm.normalize(returns))
+        grad_norm = torch.nn.utils.clip_grad_norm_(
+            self.policy.parameters(), self.config.max_grad_norm
         )
+        self.optimizer.step()
+        return terms, grad_norm
 
     # ------------------------------------------------------------ checkpoints
     def state_payload(self) -> dict[str, Any]:
@@ -562,7 +554,7 @@ class Trainer:
         """
         payload = checkpoint.load(path)
         train = dict(payload["config"]["train"])
-        allowed = {"device", "workers", "checkpoint_every"}
+        allowed = {"device", "workers", "update_workers", "checkpoint_every"}
         if set(overrides) - allowed:
             raise ValueError(
                 f"Trainer.load can override only {sorted(allowed)}; the task, model and "
@@ -654,6 +646,7 @@ class Trainer:
 
     def close(self) -> None:
         self.env.close()
+        self.gradients.close()
         if self._remote is not None:
             self._remote.close()
 

@@ -2,6 +2,7 @@
 
 import copy
 
+import pytest
 import torch
 
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
@@ -9,8 +10,11 @@ from mat_sdk.normalization import ValueNorm
 from mat_sdk.trainer import Trainer
 
 
-def test_losses_and_gradients_equal_the_official_style_reference():
-    with Trainer("cheetah-6x1", "mat", num_envs=4, rollout_length=25, seed=0) as trainer:
+@pytest.mark.parametrize("update_workers", [0, 1], ids=["one-process", "split-with-a-worker"])
+def test_losses_and_gradients_equal_the_official_style_reference(update_workers):
+    with Trainer(
+        "cheetah-6x1", "mat", num_envs=4, rollout_length=25, update_workers=update_workers
+    ) as trainer:
         batch, _ = trainer._rollout()
         mb = {
             k: v.flatten(0, 1)[:50]
@@ -25,12 +29,12 @@ def test_losses_and_gradients_equal_the_official_style_reference():
 
         ours_norm, ref_norm = ValueNorm(), ValueNorm()
         ours_norm.update(mb["returns"])
-        ours = trainer.loss(mb, ours_norm.normalize(mb["returns"])).total
+        trainer.gradients.share(mb)  # the trainer's own path: split over processes or not
+        ours = trainer.gradients.backward(torch.arange(50), ours_norm.normalize(mb["returns"]))
         theirs = official_loss(reference, ref_norm, mb, trainer.config)
-        ours_value, theirs_value = float(ours.detach()), float(theirs.detach())
+        ours_value, theirs_value = float(ours.total.detach()), float(theirs.detach())
         assert abs(ours_value - theirs_value) <= 1e-5 * max(1.0, abs(theirs_value))
 
-        ours.backward()
         theirs.backward()
         ours_grads = dict(trainer.policy.named_parameters())
         checked = 0

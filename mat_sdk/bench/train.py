@@ -9,36 +9,26 @@ from __future__ import annotations
 
 import copy
 import time
+from functools import partial
 
 import torch
 
 from mat_sdk.bench import compare, print_table
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
+from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
+from mat_sdk.processes import usable_cores
 from mat_sdk.trainer import Trainer
 
 
-def _our_step(trainer: Trainer, policy, optimizer, loss_fn):
-    value_norm = ValueNorm(device=trainer.device)
-
-    def step(mb):
-        value_norm.update(mb["returns"])
-        terms = loss_fn(mb, value_norm.normalize(mb["returns"]))
-        optimizer.zero_grad(set_to_none=True)
-        terms.total.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), trainer.config.max_grad_norm)
-        optimizer.step()
-
-    return step
-
-
-def _reference_step(trainer: Trainer):
+def _reference_step(trainer: Trainer, flat: dict[str, torch.Tensor]):
     model = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents).to(trainer.device)
     # torch's defaults, as the official code has them: for-loops on CPU, foreach on CUDA
     optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5)
     value_norm = ValueNorm(device=trainer.device)
 
-    def step(mb):
+    def step(idx):
+        mb = {key: value[idx] for key, value in flat.items()}
         loss = official_loss(model, value_norm, mb, trainer.config)
         optimizer.zero_grad()
         loss.backward()
@@ -48,16 +38,24 @@ def _reference_step(trainer: Trainer):
     return step
 
 
-def _variant(trainer: Trainer, fused: bool, compile_mode: str | None = None):
-    """Our update step on a private copy of the policy, with the chosen levers
-    (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
+def _variant(
+    trainer: Trainer,
+    flat: dict[str, torch.Tensor],
+    fused: bool,
+    update_workers: int = 0,
+    compile_mode: str | None = None,
+) -> Trainer:
+    """The trainer's own optimizer step on a private copy of its policy, with the chosen
+    levers (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
     twin = copy.copy(trainer)
     twin.policy = copy.deepcopy(trainer.policy)
-    optimizer = torch.optim.Adam(
+    twin.optimizer = torch.optim.Adam(
         twin.policy.parameters(), lr=trainer.config.lr, eps=1e-5, fused=fused
     )
-    loss_fn = twin.loss if compile_mode is None else torch.compile(twin.loss, mode=compile_mode)
-    return _our_step(twin, twin.policy, optimizer, loss_fn)
+    twin.value_norm = ValueNorm(device=trainer.device)
+    twin.gradients = MinibatchGradients(twin.policy, trainer.config, update_workers, compile_mode)
+    twin.gradients.share(flat)
+    return twin
 
 
 def main(
@@ -66,10 +64,13 @@ def main(
     compiled: bool = False,
     rounds: int = 3,
     workers: int = 0,
+    threads: int | None = None,
 ) -> None:
+    options = {"torch_threads": threads} if threads else {}  # else the trainer's default
     trainer = Trainer(
-        env_id, "mat", num_envs=40, rollout_length=100, device=device, workers=workers
+        env_id, "mat", num_envs=40, rollout_length=100, device=device, workers=workers, **options
     )
+    twins: dict[str, Trainer] = {}
     try:
         trainer._rollout()  # warm up the obs normaliser and caches
         start = time.perf_counter()
@@ -86,22 +87,27 @@ def main(
             flat["advantages"].std() + 1e-5
         )
         size = flat["obs"].shape[0] // 40
-        minibatches = [
-            {k: v[i * size : (i + 1) * size] for k, v in flat.items()} for i in range(40)
-        ]
-        variants = {
-            "reference (official style)": _reference_step(trainer),
-            "ours, foreach Adam": _variant(trainer, fused=False),
-            "ours, fused Adam (default)": _variant(trainer, fused=True),
+        minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
+        cpu = trainer.device.type == "cpu"
+        split = cpu and usable_cores() > 1  # an update worker needs a core of its own
+        twins = {
+            "ours, foreach Adam": _variant(trainer, flat, fused=False),
+            "ours, fused Adam (default)": _variant(trainer, flat, fused=True),
         }
+        if split:
+            twins["ours + 1 update worker"] = _variant(trainer, flat, True, update_workers=1)
         if compiled:
-            variants["ours, fused Adam + torch.compile"] = _variant(
-                trainer, fused=True, compile_mode="default"
-            )
-            if trainer.device.type == "cuda":  # the GPU step is launch-bound: CUDA graphs
-                variants["ours, fused Adam + torch.compile (CUDA graphs)"] = _variant(
-                    trainer, fused=True, compile_mode="reduce-overhead"
+            twins["ours + torch.compile"] = _variant(trainer, flat, True, compile_mode="default")
+            if split:
+                twins["ours + torch.compile + 1 update worker"] = _variant(
+                    trainer, flat, True, update_workers=1, compile_mode="default"
                 )
+            if not cpu:  # the GPU step is launch-bound: CUDA graphs
+                twins["ours + torch.compile (CUDA graphs)"] = _variant(
+                    trainer, flat, True, compile_mode="reduce-overhead"
+                )
+        variants = {"reference (official style)": _reference_step(trainer, flat)}
+        variants |= {name: partial(twin._optimizer_step, flat) for name, twin in twins.items()}
         for step in variants.values():  # warm-up (and compilation)
             step(minibatches[0])
 
@@ -140,4 +146,6 @@ def main(
         )
         print_table(rows, title)
     finally:
+        for twin in twins.values():
+            twin.gradients.close()
         trainer.close()

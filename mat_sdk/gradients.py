@@ -1,0 +1,209 @@
+"""A minibatch's PPO gradient, computed in this process or split with update workers.
+
+On a CPU one update step is bound by one core: its ~65 small matmuls and three tiny
+attentions run near the core's peak, and a second torch thread only adds synchronisation
+(BENCHMARKS.md). A second core helps through data parallelism instead: with `workers=W`,
+every minibatch's rows are split W + 1 ways. Each worker process computes the gradient of
+its share on the same weights (its parameters are this process's, in shared memory) while
+this process computes its own; this process then sums the gradients, and the trainer clips
+them and steps the optimizer. Each share's loss is weighted by its fraction of the rows, so
+the sum is the gradient of the whole minibatch's mean loss: the same math as one process,
+up to float rounding.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from typing import TYPE_CHECKING
+
+import torch
+import torch.multiprocessing  # registers the sharing of tensors sent through a pipe
+from torch import Tensor
+
+from mat_sdk import processes
+from mat_sdk.model import Policy
+from mat_sdk.ppo import LossTerms, minibatch_loss
+from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
+
+if TYPE_CHECKING:
+    from mat_sdk.trainer import TrainConfig
+
+_TERMS = ("total", "policy", "value", "entropy", "clip_fraction")  # LossTerms' fields
+
+
+def _bounds(rows: int, parts: int) -> list[int]:
+    """Where each of `parts` shares of `rows` starts, then the end. The first share, this
+    process's, is never the larger: it also sums the gradients."""
+    return [rows * k // parts for k in range(parts + 1)]
+
+
+def _loss_function(compile_mode: str | None):
+    return (
+        minibatch_loss if compile_mode is None else torch.compile(minibatch_loss, mode=compile_mode)
+    )
+
+
+def _share_backward(loss, policy, config, flat, rows: Tensor, targets: Tensor, weight: float):
+    """Backpropagate the loss of one share of a minibatch, weighted by its fraction of the
+    rows; its weighted loss terms, stacked as `_TERMS`."""
+    terms = loss(policy, {key: value[rows] for key, value in flat.items()}, targets, config)
+    (terms.total * weight).backward()
+    return torch.stack([getattr(terms, name).detach() for name in _TERMS]) * weight
+
+
+class _Share:
+    """A worker's side: on each step, the gradient of its share of the current minibatch."""
+
+    def __init__(self, policy: Policy, config: TrainConfig, compile_mode, rank, parts, shared):
+        if config.torch_threads:
+            torch.set_num_threads(config.torch_threads)
+        self.policy, self.config, self.rank, self.parts = policy, config, rank, parts
+        self.loss = _loss_function(compile_mode)
+        self.params = list(policy.parameters())
+        self.rows, self.grads, self.terms = shared
+        self.flat = self.idx = self.targets = None
+
+    def batch(self, flat: dict[str, Tensor], idx: Tensor, targets: Tensor) -> None:
+        """This update's rows; each step's minibatch indexes into them."""
+        self.flat, self.idx, self.targets = flat, idx, targets
+
+    def step(self) -> None:
+        rows = int(self.rows[0])
+        lo, hi = _bounds(rows, self.parts)[self.rank : self.rank + 2]
+        for param in self.params:
+            param.grad = None
+        terms = _share_backward(
+            self.loss,
+            self.policy,
+            self.config,
+            self.flat,
+            self.idx[lo:hi],
+            self.targets[lo:hi],
+            (hi - lo) / rows,
+        )
+        for param, grad in zip(self.params, _views(self.grads, self.params), strict=True):
+            grad.copy_(param.grad) if param.grad is not None else grad.zero_()
+        self.terms.copy_(terms)
+
+
+def _worker(conn, handshake, policy, config, compile_mode, rank, parts, shared):
+    serve(conn, handshake, lambda: _Share(policy, config, compile_mode, rank, parts, shared))
+
+
+def _views(flat: Tensor, params: list[Tensor]) -> list[Tensor]:
+    """`flat` cut into one view per parameter, shaped like it."""
+    sizes = [p.numel() for p in params]
+    return [v.view_as(p) for v, p in zip(flat.split(sizes), params, strict=True)]
+
+
+class MinibatchGradients:
+    """Leaves each minibatch's loss gradient in the policy's `.grad`, computed by this
+    process alone (`workers=0`) or split with `workers` update worker processes (CPU).
+
+        gradients.share(flat)                   # once per update: the batch as rows
+        terms = gradients.backward(idx, targets)  # per minibatch: its row indices, targets
+
+    The workers start on the first `share` (or `start`), and read the policy's weights
+    from shared memory: the caller may change them in place between minibatches.
+    """
+
+    def __init__(
+        self,
+        policy: Policy,
+        config: TrainConfig,
+        workers: int = 0,
+        compile_mode: str | None = None,
+    ):
+        self.policy, self.config, self.workers = policy, config, workers
+        self.compile_mode = compile_mode
+        self._loss = _loss_function(compile_mode)
+        self._flat: dict[str, Tensor] = {}
+        self._workers: list[WorkerProcess] = []
+        self._setting_up = self._closed = False
+
+    def start(self) -> None:
+        """Start the update workers now (they take a few seconds to import torch)."""
+        if self._closed:
+            raise RuntimeError("the update workers are closed")
+        if self._workers or not self.workers:
+            return
+        self.policy.share_memory()
+        self._params = list(self.policy.parameters())
+        numel = sum(p.numel() for p in self._params)
+        self._rows = torch.zeros(1, dtype=torch.int64).share_memory_()
+        self._idx = self._targets = torch.empty(0)
+        self._results = []
+        context = mp.get_context("spawn")
+        spin = processes.SPIN_SECONDS if self.workers < processes.usable_cores() else 0.0
+        parts = self.workers + 1
+        for rank in range(1, parts):
+            grads = torch.zeros(numel).share_memory_()
+            terms = torch.zeros(len(_TERMS)).share_memory_()
+            self._results.append((_views(grads, self._params), terms))
+            shared = (self._rows, grads, terms)
+            arguments = (self.policy, self.config, self.compile_mode, rank, parts, shared)
+            self._workers.append(WorkerProcess(context, _worker, arguments, spin))
+        self._setting_up = True
+
+    def share(self, flat: dict[str, Tensor]) -> None:
+        """This update's batch as rows `{name: [rows, ...]}`; minibatches index into it."""
+        self._flat = flat
+        if not self.workers:
+            return
+        self.start()
+        if self._setting_up:
+            self._wait()
+            self._setting_up = False
+        rows = next(iter(flat.values())).shape[0]
+        if self._idx.shape[0] < rows:
+            self._idx = torch.empty(rows, dtype=torch.int64).share_memory_()
+            self._targets = torch.empty_like(flat["returns"]).share_memory_()
+        for value in flat.values():
+            value.share_memory_()
+        for worker in self._workers:
+            worker.go("batch", (flat, self._idx, self._targets))
+        self._wait()
+
+    def backward(self, idx: Tensor, targets: Tensor) -> LossTerms:
+        """Accumulate into `.grad` the gradient of the mean loss over rows `idx` (targets:
+        their normalised returns); returns the minibatch's loss terms."""
+        if not self.workers:
+            mb = {key: value[idx] for key, value in self._flat.items()}
+            terms = self._loss(self.policy, mb, targets, self.config)
+            terms.total.backward()
+            return terms
+        rows = idx.shape[0]
+        if rows < self.workers + 1:
+            raise ValueError(f"a minibatch of {rows} rows cannot be split {self.workers + 1} ways")
+        self._idx[:rows] = idx
+        self._targets[:rows] = targets
+        self._rows[0] = rows
+        for worker in self._workers:
+            worker.go()
+        own = _bounds(rows, self.workers + 1)[1]
+        try:
+            terms = _share_backward(
+                self._loss,
+                self.policy,
+                self.config,
+                self._flat,
+                idx[:own],
+                targets[:own],
+                own / rows,
+            )
+        finally:  # the workers' round ends either way
+            self._wait()
+        used = [k for k, p in enumerate(self._params) if p.grad is not None]
+        grads = [self._params[k].grad for k in used]
+        for worker_grads, worker_terms in self._results:
+            torch._foreach_add_(grads, [worker_grads[k] for k in used])
+            terms += worker_terms
+        return LossTerms(*terms)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            close_all(self._workers)
+
+    def _wait(self) -> None:
+        wait_all(self._workers, "update worker failed", self.close)
