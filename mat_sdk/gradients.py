@@ -21,6 +21,7 @@ import torch.multiprocessing  # registers the sharing of tensors sent through a 
 from torch import Tensor
 
 from mat_sdk import processes
+from mat_sdk.flat_params import FlatParameters, views
 from mat_sdk.model import Policy
 from mat_sdk.ppo import LossTerms, minibatch_loss
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
@@ -52,15 +53,20 @@ def _share_backward(loss, policy, config, flat, rows: Tensor, targets: Tensor, w
 
 
 class _Share:
-    """A worker's side: on each step, the gradient of its share of the current minibatch."""
+    """A worker's side: on each step, the gradient of its share of the current minibatch,
+    accumulated straight into shared buffers laid out like the caller's flat gradients."""
 
     def __init__(self, policy: Policy, config: TrainConfig, compile_mode, rank, parts, shared):
         if config.torch_threads:
             torch.set_num_threads(config.torch_threads)
         self.policy, self.config, self.rank, self.parts = policy, config, rank, parts
         self.loss = _loss_function(compile_mode)
-        self.params = list(policy.parameters())
-        self.rows, self.grads, self.terms = shared
+        self.rows, layout, self.grads, self.terms = shared
+        params = list(policy.parameters())
+        for indices, grad in zip(layout, self.grads, strict=True):
+            group = [params[i] for i in indices]
+            for param, view in zip(group, views(grad, group), strict=True):
+                param.grad = view
         self.flat = self.idx = self.targets = None
 
     def batch(self, flat: dict[str, Tensor], idx: Tensor, targets: Tensor) -> None:
@@ -70,8 +76,8 @@ class _Share:
     def step(self) -> None:
         rows = int(self.rows[0])
         lo, hi = _bounds(rows, self.parts)[self.rank : self.rank + 2]
-        for param in self.params:
-            param.grad = None
+        for grad in self.grads:
+            grad.zero_()
         terms = _share_backward(
             self.loss,
             self.policy,
@@ -81,8 +87,6 @@ class _Share:
             self.targets[lo:hi],
             (hi - lo) / rows,
         )
-        for param, grad in zip(self.params, _views(self.grads, self.params), strict=True):
-            grad.copy_(param.grad) if param.grad is not None else grad.zero_()
         self.terms.copy_(terms)
 
 
@@ -90,15 +94,10 @@ def _worker(conn, handshake, policy, config, compile_mode, rank, parts, shared):
     serve(conn, handshake, lambda: _Share(policy, config, compile_mode, rank, parts, shared))
 
 
-def _views(flat: Tensor, params: list[Tensor]) -> list[Tensor]:
-    """`flat` cut into one view per parameter, shaped like it."""
-    sizes = [p.numel() for p in params]
-    return [v.view_as(p) for v, p in zip(flat.split(sizes), params, strict=True)]
-
-
 class MinibatchGradients:
-    """Leaves each minibatch's loss gradient in the policy's `.grad`, computed by this
-    process alone (`workers=0`) or split with `workers` update worker processes (CPU).
+    """Adds each minibatch's loss gradient to the policy's flat gradients (`params`),
+    computed by this process alone (`workers=0`) or split with `workers` update worker
+    processes (CPU).
 
         gradients.share(flat)                   # once per update: the batch as rows
         terms = gradients.backward(idx, targets)  # per minibatch: its row indices, targets
@@ -110,11 +109,12 @@ class MinibatchGradients:
     def __init__(
         self,
         policy: Policy,
+        params: FlatParameters,
         config: TrainConfig,
         workers: int = 0,
         compile_mode: str | None = None,
     ):
-        self.policy, self.config, self.workers = policy, config, workers
+        self.policy, self.params, self.config, self.workers = policy, params, config, workers
         self.compile_mode = compile_mode
         self._loss = _loss_function(compile_mode)
         self._flat: dict[str, Tensor] = {}
@@ -127,9 +127,9 @@ class MinibatchGradients:
             raise RuntimeError("the update workers are closed")
         if self._workers or not self.workers:
             return
-        self.policy.share_memory()
-        self._params = list(self.policy.parameters())
-        numel = sum(p.numel() for p in self._params)
+        self.policy.share_memory()  # the flat parameter buffers, which the parameters view
+        index = {id(p): i for i, p in enumerate(self.policy.parameters())}
+        layout = [[index[id(p)] for p in group] for group in self.params.groups]
         self._rows = torch.zeros(1, dtype=torch.int64).share_memory_()
         self._idx = self._targets = torch.empty(0)
         self._results = []
@@ -137,10 +137,10 @@ class MinibatchGradients:
         spin = processes.SPIN_SECONDS if self.workers < processes.usable_cores() else 0.0
         parts = self.workers + 1
         for rank in range(1, parts):
-            grads = torch.zeros(numel).share_memory_()
+            grads = [torch.zeros_like(flat).share_memory_() for flat in self.params.buffers]
             terms = torch.zeros(len(_TERMS)).share_memory_()
-            self._results.append((_views(grads, self._params), terms))
-            shared = (self._rows, grads, terms)
+            self._results.append((grads, terms))
+            shared = (self._rows, layout, grads, terms)
             arguments = (self.policy, self.config, self.compile_mode, rank, parts, shared)
             self._workers.append(WorkerProcess(context, _worker, arguments, spin))
         self._setting_up = True
@@ -193,10 +193,9 @@ class MinibatchGradients:
             )
         finally:  # the workers' round ends either way
             self._wait()
-        used = [k for k, p in enumerate(self._params) if p.grad is not None]
-        grads = [self._params[k].grad for k in used]
         for worker_grads, worker_terms in self._results:
-            torch._foreach_add_(grads, [worker_grads[k] for k in used])
+            for flat, grad in zip(self.params.buffers, worker_grads, strict=True):
+                flat.grad.add_(grad)
             terms += worker_terms
         return LossTerms(*terms)
 

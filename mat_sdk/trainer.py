@@ -26,6 +26,7 @@ import torch
 
 from mat_sdk import checkpoint, envs
 from mat_sdk.checkpoint import CHECKPOINT_NAME
+from mat_sdk.flat_params import FlatParameters
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, Policy, build_policy, permute_agents
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
@@ -202,15 +203,13 @@ class Trainer:
             n_block=cfg.n_block,
         )
         self.policy: Policy = build_policy(self.model_config).to(self.device)
-        self.optimizer = torch.optim.Adam(
-            self._param_groups(), lr=cfg.lr, eps=cfg.adam_eps, fused=True
-        )
+        self._build_optimizer()
         if cfg.update_workers and self.device.type != "cpu":
             raise ValueError(
                 "update_workers splits CPU updates over processes; on a GPU use update_workers=0"
             )
         self.gradients = MinibatchGradients(
-            self.policy, cfg, cfg.update_workers, "default" if cfg.compile else None
+            self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
         )
         self._onnx_actor = None
         if cfg.rollout_backend == "onnx":
@@ -224,6 +223,20 @@ class Trainer:
         self.progress = {"steps": 0, "updates": 0}
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self._next_obs = self.env.reset(seed=cfg.seed)
+
+    def _build_optimizer(self, fused: bool = True) -> None:
+        """Adam over the policy's parameters, laid out flat (`FlatParameters`)."""
+        groups = self._param_groups()
+        self.params = FlatParameters([group.pop("params") for group in groups])
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": [flat], **group}
+                for flat, group in zip(self.params.buffers, groups, strict=True)
+            ],
+            lr=self.config.lr,
+            eps=self.config.adam_eps,
+            fused=fused,
+        )
 
     def _param_groups(self) -> list[dict]:
         critic = getattr(self.policy, "critic", None)
@@ -504,11 +517,9 @@ class Trainer:
         shared with `self.gradients`); its loss terms and gradient norm before clipping."""
         returns = flat["returns"][idx]
         self.value_norm.update(returns)
-        self.optimizer.zero_grad(set_to_none=True)
+        self.params.zero_grad()
         terms = self.gradients.backward(idx, self.value_norm.normalize(returns))
-        grad_norm = torch.nn.utils.clip_grad_norm_(
-            self.policy.parameters(), self.config.max_grad_norm
-        )
+        grad_norm = self.params.clip_grad_norm_(self.config.max_grad_norm)
         self.optimizer.step()
         return terms, grad_norm
 
@@ -530,7 +541,7 @@ class Trainer:
                 },
             },
             "model": {k: v.cpu() for k, v in self.policy.state_dict().items()},
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": self.params.per_parameter_state(self.optimizer.state_dict()),
             "progress": dict(self.progress),
             "rng": {
                 "torch": self.generator.get_state().cpu(),
@@ -608,7 +619,7 @@ class Trainer:
             trainer.obs_norm.load_state_dict(payload["obs_norm"])
             trainer.value_norm.load_state_dict(payload["value_norm"])
             if not reset_optimizer:
-                trainer.optimizer.load_state_dict(payload["optimizer"])
+                trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
                 for group in trainer.optimizer.param_groups[:1]:
                     group["lr"] = trainer.config.lr
         except BaseException:
@@ -634,7 +645,7 @@ class Trainer:
         self.policy.load_state_dict(payload["model"])
         self.obs_norm.load_state_dict(payload["obs_norm"])
         self.value_norm.load_state_dict(payload["value_norm"])
-        self.optimizer.load_state_dict(payload["optimizer"])
+        self.optimizer.load_state_dict(self.params.flat_state(payload["optimizer"]))
         self.progress = dict(payload["progress"])
         if payload["rng"].get("device", "cpu") == self.device.type:
             self.generator.set_state(payload["rng"]["torch"])

@@ -49,11 +49,11 @@ def _variant(
     levers (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
     twin = copy.copy(trainer)
     twin.policy = copy.deepcopy(trainer.policy)
-    twin.optimizer = torch.optim.Adam(
-        twin.policy.parameters(), lr=trainer.config.lr, eps=1e-5, fused=fused
-    )
+    twin._build_optimizer(fused=fused)
     twin.value_norm = ValueNorm(device=trainer.device)
-    twin.gradients = MinibatchGradients(twin.policy, trainer.config, update_workers, compile_mode)
+    twin.gradients = MinibatchGradients(
+        twin.policy, twin.params, trainer.config, update_workers, compile_mode
+    )
     twin.gradients.share(flat)
     return twin
 

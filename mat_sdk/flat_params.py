@@ -1,0 +1,100 @@
+"""A policy's parameters laid out in one buffer per optimizer group, gradients likewise.
+
+MAT has ~65 small parameter tensors. Torch's clip and Adam touch each of them, a few µs
+apiece: ~0.6 ms of a ~10 ms CPU update step, and all of it on the critical path when the
+gradient is split over processes (`mat_sdk.gradients`). With every parameter a view into
+one flat buffer per group, and every `.grad` a view into a flat gradient buffer that
+autograd accumulates into in place, zeroing, clipping and the optimizer step each run one
+kernel per group (~0.12 ms in all; BENCHMARKS.md). The modules still see ordinary
+parameters, so state dicts, export and `torch.compile` are unchanged.
+
+Checkpoints keep the optimizer state per parameter (torch's layout for the unflattened
+policy): `per_parameter_state` and `flat_state` convert.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+
+def views(flat: Tensor, params: list[Tensor]) -> list[Tensor]:
+    """`flat` cut into one view per parameter, shaped like it."""
+    sizes = [p.numel() for p in params]
+    return [v.view_as(p) for v, p in zip(flat.split(sizes), params, strict=True)]
+
+
+class FlatParameters:
+    """Moves each group of parameters into one buffer: `buffers[g]` is a leaf tensor whose
+    `.grad` holds the group's gradients. Optimise `buffers`, not the parameters."""
+
+    def __init__(self, groups: list[list[nn.Parameter]]):
+        self.groups = groups
+        self.buffers: list[Tensor] = []
+        for params in groups:
+            flat = torch.cat([p.detach().reshape(-1) for p in params])
+            flat.grad = torch.zeros_like(flat)
+            for param, value, grad in zip(
+                params, views(flat, params), views(flat.grad, params), strict=True
+            ):
+                param.data = value
+                param.grad = grad
+            self.buffers.append(flat)
+
+    def zero_grad(self) -> None:
+        """Zero the gradients in place: autograd then accumulates into the flat buffers."""
+        for flat in self.buffers:
+            flat.grad.zero_()
+
+    def clip_grad_norm_(self, max_norm: float) -> Tensor:
+        """`torch.nn.utils.clip_grad_norm_` over every group: the total norm before clipping."""
+        norms = torch.stack([torch.linalg.vector_norm(flat.grad) for flat in self.buffers])
+        total = torch.linalg.vector_norm(norms)
+        scale = torch.clamp(max_norm / (total + 1e-6), max=1.0)
+        for flat in self.buffers:
+            flat.grad.mul_(scale)
+        return total
+
+    def per_parameter_state(self, flat_state: dict[str, Any]) -> dict[str, Any]:
+        """An optimizer state dict over `buffers` as one over the parameters, group by group."""
+        state: dict[int, dict] = {}
+        param_groups = []
+        index = 0
+        for g, (group, params) in enumerate(
+            zip(flat_state["param_groups"], self.groups, strict=True)
+        ):
+            buffer_state = flat_state["state"].get(g)
+            ids = list(range(index, index + len(params)))
+            if buffer_state is not None:
+                per_param = {  # a scalar (Adam's step) is every parameter's
+                    key: [value] * len(params) if value.dim() == 0 else views(value, params)
+                    for key, value in buffer_state.items()
+                }
+                for k, i in enumerate(ids):
+                    state[i] = {key: values[k].clone() for key, values in per_param.items()}
+            param_groups.append({**group, "params": ids})
+            index += len(params)
+        return {"state": state, "param_groups": param_groups}
+
+    def flat_state(self, per_parameter: dict[str, Any]) -> dict[str, Any]:
+        """The inverse of `per_parameter_state`, for `optimizer.load_state_dict`."""
+        state: dict[int, dict] = {}
+        groups = per_parameter["param_groups"]
+        if len(groups) != len(self.groups) or any(
+            len(group["params"]) != len(params)
+            for group, params in zip(groups, self.groups, strict=True)
+        ):
+            raise ValueError("the optimizer state does not match this policy's parameters")
+        for g, group in enumerate(groups):
+            states = [per_parameter["state"].get(i) for i in group["params"]]
+            if all(s is not None for s in states):
+                state[g] = {
+                    key: value
+                    if value.dim() == 0
+                    else torch.cat([s[key].reshape(-1) for s in states])
+                    for key, value in states[0].items()
+                }
+        param_groups = [{**group, "params": [g]} for g, group in enumerate(groups)]
+        return {"state": state, "param_groups": param_groups}
