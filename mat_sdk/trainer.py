@@ -93,6 +93,9 @@ class TrainConfig:
     # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
     torch_threads: int = 1
+    # CPU: treat subnormal floats (< 1.2e-38) as zero. Training makes some, and x86 computes
+    # with them ~100x slower: ~15% of a CPU update step (BENCHMARKS.md). Process-wide.
+    flush_denormal: bool = True
     # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
     init_from: str | None = None
     # Ray: "local" or a cluster address. Rollouts then run on `workers` Ray actors, each
@@ -179,6 +182,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
+        if cfg.flush_denormal:
+            torch.set_flush_denormal(True)
         self._remote = None
         if cfg.ray is not None:
             from mat_sdk.ray_rollouts import RayRollouts
@@ -224,7 +229,7 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self._next_obs = self.env.reset(seed=cfg.seed)
 
-    def _build_optimizer(self, fused: bool = True) -> None:
+    def _build_optimizer(self) -> None:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`)."""
         groups = self._param_groups()
         self.params = FlatParameters([group.pop("params") for group in groups])
@@ -235,7 +240,7 @@ class Trainer:
             ],
             lr=self.config.lr,
             eps=self.config.adam_eps,
-            fused=fused,
+            fused=True,
         )
 
     def _param_groups(self) -> list[dict]:

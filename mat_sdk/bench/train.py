@@ -38,10 +38,23 @@ def _reference_step(trainer: Trainer, flat: dict[str, torch.Tensor]):
     return step
 
 
+def _keeping_subnormals(step):
+    """`step` with subnormal floats computed as such, as torch does by default (the
+    trainer flushes them to zero: `TrainConfig.flush_denormal`)."""
+
+    def run(idx):
+        torch.set_flush_denormal(False)
+        try:
+            step(idx)
+        finally:
+            torch.set_flush_denormal(True)
+
+    return run
+
+
 def _variant(
     trainer: Trainer,
     flat: dict[str, torch.Tensor],
-    fused: bool,
     update_workers: int = 0,
     compile_mode: str | None = None,
 ) -> Trainer:
@@ -49,7 +62,7 @@ def _variant(
     levers (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
     twin = copy.copy(trainer)
     twin.policy = copy.deepcopy(trainer.policy)
-    twin._build_optimizer(fused=fused)
+    twin._build_optimizer()
     twin.value_norm = ValueNorm(device=trainer.device)
     twin.gradients = MinibatchGradients(
         twin.policy, twin.params, trainer.config, update_workers, compile_mode
@@ -91,23 +104,27 @@ def main(
         cpu = trainer.device.type == "cpu"
         split = cpu and usable_cores() > 1  # an update worker needs a core of its own
         twins = {
-            "ours, foreach Adam": _variant(trainer, flat, fused=False),
-            "ours, fused Adam (default)": _variant(trainer, flat, fused=True),
+            "ours, subnormals kept": _variant(trainer, flat),
+            "ours (default)": _variant(trainer, flat),
         }
         if split:
-            twins["ours + 1 update worker"] = _variant(trainer, flat, True, update_workers=1)
+            twins["ours + 1 update worker"] = _variant(trainer, flat, update_workers=1)
         if compiled:
-            twins["ours + torch.compile"] = _variant(trainer, flat, True, compile_mode="default")
+            twins["ours + torch.compile"] = _variant(trainer, flat, compile_mode="default")
             if split:
                 twins["ours + torch.compile + 1 update worker"] = _variant(
-                    trainer, flat, True, update_workers=1, compile_mode="default"
+                    trainer, flat, update_workers=1, compile_mode="default"
                 )
             if not cpu:  # the GPU step is launch-bound: CUDA graphs
                 twins["ours + torch.compile (CUDA graphs)"] = _variant(
-                    trainer, flat, True, compile_mode="reduce-overhead"
+                    trainer, flat, compile_mode="reduce-overhead"
                 )
-        variants = {"reference (official style)": _reference_step(trainer, flat)}
+        variants = {
+            "reference (official style)": _reference_step(trainer, flat),
+            "reference, subnormals kept": _keeping_subnormals(_reference_step(trainer, flat)),
+        }
         variants |= {name: partial(twin._optimizer_step, flat) for name, twin in twins.items()}
+        variants["ours, subnormals kept"] = _keeping_subnormals(variants["ours, subnormals kept"])
         for step in variants.values():  # warm-up (and compilation)
             step(minibatches[0])
 
