@@ -178,7 +178,8 @@ def parse_settings(values: tuple[str, ...]) -> dict:
     default=0,
     show_default=True,
     help="Processes that each compute the gradient of a share of every minibatch (CPU; the "
-    "same math). On C cores use at most C - 1; 1 on 2 cores: ~1.4x faster updates.",
+    "same math). On C cores use at most C - 1; 1 on 2 cores: 1.3-1.5x faster updates, "
+    "~2x the official-style update with --set compile=true.",
 )
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu | cuda | auto")

@@ -65,7 +65,7 @@ class TrainConfig:
     num_envs: int = 40
     workers: int = 0
     # Processes that each compute the gradient of a share of every minibatch (CPU): on 2
-    # cores, 1 makes an update step ~1.4x faster (BENCHMARKS.md). 0: this process alone.
+    # cores, 1 makes an update step 1.3-1.5x faster (BENCHMARKS.md). 0: this process alone.
     update_workers: int = 0
     rollout_length: int = 100
     lr: float = 5e-5
@@ -94,7 +94,7 @@ class TrainConfig:
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
     torch_threads: int = 1
     # CPU: treat subnormal floats (< 1.2e-38) as zero. Training makes some, and x86 computes
-    # with them ~100x slower: ~15% of a CPU update step (BENCHMARKS.md). Process-wide.
+    # with them far slower: 4-15% of a CPU update step (BENCHMARKS.md). Process-wide.
     flush_denormal: bool = True
     # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
     init_from: str | None = None
