@@ -39,9 +39,11 @@ def _bounds(rows: int, parts: int) -> list[int]:
 
 
 def _loss_function(compile_mode: str | None):
-    return (
-        minibatch_loss if compile_mode is None else torch.compile(minibatch_loss, mode=compile_mode)
-    )
+    if compile_mode is None:
+        return minibatch_loss
+    # Static shapes: within a run every minibatch share has the same rows. (A second shape
+    # in one process, as in `mat bench train`, gets its own graph instead of dynamic ones.)
+    return torch.compile(minibatch_loss, mode=compile_mode, dynamic=False)
 
 
 def _share_backward(loss, policy, config, flat, rows: Tensor, targets: Tensor, weight: float):
