@@ -94,7 +94,7 @@ class TrainConfig:
     # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
     torch_threads: int = 1
     # CPU: treat subnormal floats (< 1.2e-38) as zero. Training makes some, and x86 computes
-    # with them far slower: 4-15% of a CPU update step (BENCHMARKS.md). Process-wide.
+    # with them far slower: up to 16% of a CPU update step (BENCHMARKS.md). Process-wide.
     flush_denormal: bool = True
     # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
     init_from: str | None = None
