@@ -59,10 +59,7 @@ class _Share:
     accumulated straight into shared buffers laid out like the caller's flat gradients."""
 
     def __init__(self, policy: Policy, config: TrainConfig, compile_mode, rank, parts, shared):
-        if config.torch_threads:
-            torch.set_num_threads(config.torch_threads)
-        if config.flush_denormal:
-            torch.set_flush_denormal(True)
+        config.configure_torch()
         self.policy, self.config, self.rank, self.parts = policy, config, rank, parts
         self.loss = _loss_function(compile_mode)
         self.rows, layout, self.grads, self.terms = shared

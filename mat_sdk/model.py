@@ -33,6 +33,16 @@ def permute_agents(x: Tensor, order: Tensor) -> Tensor:
     return x.gather(1, index)
 
 
+def in_agent_order(order: Tensor | None, fn, *inputs: Tensor) -> tuple:
+    """`fn(*inputs)` with the agents of every input [B, n, ...] taken in `order` [B, n] (None:
+    as they are); its outputs come back in canonical agent order."""
+    if order is None:
+        return fn(*inputs)
+    inverse = order.argsort(dim=1)
+    results = fn(*(permute_agents(x, order) for x in inputs))
+    return tuple(permute_agents(r, inverse) for r in results)
+
+
 @dataclass
 class ModelConfig:
     obs_dim: int

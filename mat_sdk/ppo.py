@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mat_sdk.model import Policy, permute_agents
+from mat_sdk.model import Policy, in_agent_order
 
 if TYPE_CHECKING:
     from mat_sdk.trainer import TrainConfig
@@ -92,13 +92,9 @@ def minibatch_loss(
     Agents are evaluated in the order they acted in (`mb["order"]`, where the rollout
     shuffled them); the results come back in canonical order.
     """
-    obs, actions, order = mb["obs"], mb["actions"], mb.get("order")
-    if order is None:
-        log_prob, entropy, values = policy.evaluate(obs, actions)
-    else:
-        inverse = order.argsort(dim=1)
-        results = policy.evaluate(permute_agents(obs, order), permute_agents(actions, order))
-        log_prob, entropy, values = (permute_agents(r, inverse) for r in results)
+    log_prob, entropy, values = in_agent_order(
+        mb.get("order"), policy.evaluate, mb["obs"], mb["actions"]
+    )
     return ppo_loss(
         log_prob,
         mb["log_probs"],

@@ -121,13 +121,14 @@ class WorkerProcess:
         return True, None
 
     def close(self) -> None:
-        """Ask the worker to stop; terminate it if it has not within 5 s."""
+        """Ask the worker to stop (`join` then waits for it)."""
         self.handshake.flags[_MESSAGE] = 1
         with contextlib.suppress(BrokenPipeError, OSError):
             self.pipe.send(("close", ()))
         self.handshake.go.release()
 
     def join(self) -> None:
+        """Wait for a closed worker; terminate it if it has not stopped within 5 s."""
         self.process.join(timeout=5)
         if self.process.is_alive():
             self.process.terminate()

@@ -18,6 +18,7 @@ import re
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ from mat_sdk import checkpoint, envs
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.flat_params import FlatParameters
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import ModelConfig, Policy, build_policy, permute_agents
+from mat_sdk.model import ModelConfig, Policy, build_policy, in_agent_order
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.ppo import gae
 from mat_sdk.run_log import RunLog
@@ -125,6 +126,13 @@ class TrainConfig:
         if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):
             raise ValueError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
 
+    def configure_torch(self) -> None:
+        """Apply the process-wide torch settings, in the trainer and in its update workers."""
+        if self.torch_threads:
+            torch.set_num_threads(self.torch_threads)
+        if self.flush_denormal:
+            torch.set_flush_denormal(True)
+
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
         """The paper's per-method hyperparameters, then the caller's overrides."""
@@ -180,10 +188,7 @@ class Trainer:
                 "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
             )
         torch.manual_seed(cfg.seed)
-        if cfg.torch_threads:
-            torch.set_num_threads(cfg.torch_threads)
-        if cfg.flush_denormal:
-            torch.set_flush_denormal(True)
+        cfg.configure_torch()
         self._remote = None
         if cfg.ray is not None:
             from mat_sdk.ray_rollouts import RayRollouts
@@ -271,13 +276,9 @@ class Trainer:
     def _act(self, obs: torch.Tensor, order: torch.Tensor | None, deterministic: bool = False):
         """Act in `order` (agents decode in that sequence); results back in canonical order."""
         act = self.policy.act if self._onnx_actor is None else self._onnx_actor.act
-        if order is None:
-            return act(obs, deterministic=deterministic, generator=self.generator)
-        inverse = order.argsort(dim=1)
-        results = act(
-            permute_agents(obs, order), deterministic=deterministic, generator=self.generator
+        return in_agent_order(
+            order, partial(act, deterministic=deterministic, generator=self.generator), obs
         )
-        return tuple(permute_agents(r, inverse) for r in results)
 
     def predict(self, obs, deterministic: bool = True):
         """Actions for raw observations: an array [n, obs_dim] or [B, n, obs_dim] -> an array
@@ -477,8 +478,10 @@ class Trainer:
         batch["advantages"] = advantages
         return batch
 
-    def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
-        cfg = self.config
+    @staticmethod
+    def _as_rows(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A rollout's tensors [T, E, ...] as the update's rows [T * E, ...], with the
+        advantages normalised over all of them."""
         flat = {
             k: v.flatten(0, 1)
             for k, v in batch.items()
@@ -486,6 +489,11 @@ class Trainer:
         }
         advantages = flat["advantages"]
         flat["advantages"] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        return flat
+
+    def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        cfg = self.config
+        flat = self._as_rows(batch)
         self.gradients.share(flat)
         size = flat["obs"].shape[0]
         minibatch = size // cfg.num_minibatches

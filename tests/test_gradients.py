@@ -13,7 +13,7 @@ SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
 def shared_rows(trainer: Trainer) -> dict[str, torch.Tensor]:
     """A rollout's batch as rows, shared with the trainer's update workers."""
     batch, _ = trainer._rollout()
-    flat = {k: v.flatten(0, 1) for k, v in batch.items() if k not in ("rewards", "done")}
+    flat = trainer._as_rows(batch)
     trainer.gradients.share(flat)
     return flat
 

@@ -91,14 +91,7 @@ def main(
         for _ in range(rollouts):
             batch, _ = trainer._rollout()
         rollout_s = (time.perf_counter() - start) / rollouts
-        flat = {
-            k: v.flatten(0, 1)
-            for k, v in batch.items()
-            if k not in ("rewards", "terminated", "done")
-        }
-        flat["advantages"] = (flat["advantages"] - flat["advantages"].mean()) / (
-            flat["advantages"].std() + 1e-5
-        )
+        flat = trainer._as_rows(batch)
         size = flat["obs"].shape[0] // 40
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
         cpu = trainer.device.type == "cpu"
