@@ -59,9 +59,10 @@ def export(
     which the runtime uses when it is given exactly N agents.
     """
     out_dir = Path(out_dir)
-    _check_target(out_dir, force)
+    _check_target(out_dir, force, Path(checkpoint_path))
     payload = checkpoint.load(checkpoint_path)
     policy, normalizer, value_scale = _rebuild(payload)
+    _check_env(payload, policy.cfg)
     cfg = policy.cfg
     counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -106,41 +107,96 @@ def export(
         umask = os.umask(0)
         os.umask(umask)
         staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        staging.rename(out_dir)
+        _replace(staging, out_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return manifest
 
 
-def _check_target(out_dir: Path, force: bool) -> None:
-    """Refuse to write over anything but a bundle, and over a bundle unless `force`: a wrong
-    `-o` (the run directory, `.`) must never delete a checkpoint or a project."""
-    if not out_dir.exists():
-        return
-    if not out_dir.is_dir():
+def _check_target(out_dir: Path, force: bool, checkpoint_path: Path) -> None:
+    """Refuse, before any work, to write where it would lose something: over anything but a
+    bundle, over a bundle unless `force`, over a bundle that also holds other files (notes,
+    the checkpoint itself), through a symlink, or into a directory that cannot be written."""
+    if out_dir.is_symlink():
+        raise ExportError(
+            f"{out_dir} is a symlink; not replacing it or what it points to; "
+            "choose a real directory for the bundle"
+        )
+    if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"{out_dir} is a file; choose a directory for the bundle")
-    if not any(out_dir.iterdir()):
+    source = Path(checkpoint_path).resolve()
+    if out_dir.exists() and source.is_relative_to(out_dir.resolve()):
+        raise ExportError(
+            f"{out_dir} holds the checkpoint being exported ({checkpoint_path}); "
+            "choose another directory for the bundle"
+        )
+    parent = next((p for p in (out_dir, *out_dir.parents) if p.exists()), Path("."))
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ExportError(f"cannot write the bundle: {parent} is not writable")
+    if out_dir.exists() and not os.access(out_dir.parent, os.W_OK | os.X_OK):
+        raise ExportError(f"cannot replace {out_dir}: {out_dir.parent} is not writable")
+    if not out_dir.exists() or not any(out_dir.iterdir()):
         return
     manifest = out_dir / "manifest.json"
     try:
-        is_bundle = json.loads(manifest.read_text()).get("format") == FORMAT
-    except (OSError, ValueError, AttributeError):
-        is_bundle = False
+        listed = json.loads(manifest.read_text())
+        is_bundle = listed.get("format") == FORMAT
+        own = {"manifest.json", *listed.get("graphs", {})}
+    except (OSError, ValueError, AttributeError, TypeError):
+        is_bundle, own = False, set()
     if not is_bundle:
         raise ExportError(
             f"{out_dir} exists and is not a MAT bundle (no {FORMAT} manifest.json); "
             "not replacing it, even with --force; choose a new directory"
         )
+    foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in own)
+    if foreign:
+        raise ExportError(
+            f"{out_dir} holds files that are not the bundle's ({', '.join(foreign[:5])}"
+            f"{', ...' if len(foreign) > 5 else ''}); not replacing it, even with --force; "
+            "move them out or choose a new directory"
+        )
     if not force:
         raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
 
 
+def _replace(staging: Path, out_dir: Path) -> None:
+    """Move the finished bundle into place; an old bundle is moved aside first and deleted
+    only once the new one is there, so a crash leaves one of the two."""
+    if not out_dir.exists():
+        staging.rename(out_dir)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
+    old.rmdir()
+    out_dir.rename(old)
+    staging.rename(out_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _check_env(payload: dict, cfg: ModelConfig) -> None:
+    """The bundle names the robot it drives: that env must exist and fit the model."""
+    from mat_sdk import envs
+
+    env_id, train = payload["config"]["env"]["id"], payload["config"]["train"]
+    try:
+        team = envs.make_team(env_id, train.get("faults") or {}, **(train.get("env_options") or {}))
+    except (ValueError, TypeError) as error:
+        raise ExportError(
+            f"the checkpoint was trained on env {env_id!r}, which cannot be made here ({error}); "
+            "no bundle written"
+        ) from None
+    if (team.obs_dim, team.n_actions) != (cfg.obs_dim, cfg.action_dim):
+        raise ExportError(
+            f"env {env_id} gives observations of size {team.obs_dim} and actions of size "
+            f"{team.n_actions}, but the checkpoint's model takes {cfg.obs_dim} and "
+            f"{cfg.action_dim}; no bundle written"
+        )
+
+
 def _rebuild(payload: dict) -> tuple[Any, ObsNormalizer, ValueScale]:
-    cfg = ModelConfig(**payload["config"]["model"])
+    cfg = ModelConfig.from_dict(payload["config"]["model"])
     policy = build_policy(cfg)
-    policy.load_state_dict(payload["model"])
+    checkpoint.load_weights(policy, payload["model"], "the checkpoint")
     policy.eval()
     norm = payload["obs_norm"] if payload["config"]["train"]["normalize_obs"] else None
     normalizer = ObsNormalizer(

@@ -19,6 +19,10 @@ FORMAT = "mat-checkpoint"
 VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"  # a run directory's checkpoint
 ZIP_MAGIC = b"PK\x03\x04"  # torch.save writes a zip archive
+NORMALISERS = {
+    "obs_norm": ("mean", "var"),
+    "value_norm": ("running_mean", "running_mean_sq", "debiasing_term"),
+}
 
 
 class CheckpointError(ValueError):
@@ -81,12 +85,66 @@ def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a MAT checkpoint (no 'format': '{FORMAT}' field)")
-    if payload.get("version", 0) > VERSION:
+    version = payload.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise CheckpointError(f"{path}: version must be an integer >= 1, got {version!r}")
+    if version > VERSION:
         raise CheckpointError(
-            f"{path} has checkpoint version {payload['version']}, newer than this SDK reads "
+            f"{path} has checkpoint version {version}, newer than this SDK reads "
             f"({VERSION}); upgrade mat-sdk"
         )
+    _check_structure(path, payload)
     return payload
+
+
+def _check_structure(path: Path, payload: dict[str, Any]) -> None:
+    """The parts every reader uses: config (train, model, env), weights and progress."""
+    from mat_sdk.model import ModelConfig
+
+    def fail(field: str, problem: str) -> None:
+        raise CheckpointError(f"{path}: {field} {problem}; is the file damaged or edited?")
+
+    config = payload.get("config")
+    if not isinstance(config, dict):
+        fail("config", f"must be a mapping, got {type(config).__name__}")
+    for part in ("train", "model", "env"):
+        if not isinstance(config.get(part), dict):
+            fail(f"config.{part}", f"must be a mapping, got {type(config.get(part)).__name__}")
+    try:
+        ModelConfig.from_dict(config["model"])
+    except ValueError as error:
+        fail("config.model", f"is invalid ({error})")
+    if not isinstance(config["env"].get("id"), str):
+        fail("config.env.id", f"must be a string, got {config['env'].get('id')!r}")
+    weights = payload.get("model")
+    if not isinstance(weights, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in weights.items()
+    ):
+        fail("model", "must map parameter names to tensors")
+    if not isinstance(config["train"].get("normalize_obs"), bool):
+        fail("config.train.normalize_obs", "must be true or false")
+    for part, tensors in NORMALISERS.items():
+        state = payload.get(part)
+        if not isinstance(state, dict) or not all(
+            isinstance(state.get(k), torch.Tensor) for k in tensors
+        ):
+            fail(part, f"must hold the tensors {', '.join(tensors)}")
+    progress = payload.get("progress")
+    if not isinstance(progress, dict) or not all(
+        isinstance(progress.get(k), int) and progress[k] >= 0 for k in ("steps", "updates")
+    ):
+        fail("progress", f"must hold steps and updates counts, got {progress!r}")
+
+
+def load_weights(module: torch.nn.Module, state: dict[str, Any], path: str | os.PathLike) -> None:
+    """`module.load_state_dict(state)`, or `CheckpointError` if the weights do not fit it."""
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, KeyError, TypeError, ValueError) as error:
+        first = (str(error).splitlines() or [type(error).__name__])[0]
+        raise CheckpointError(
+            f"{path}: its weights do not fit the model its config describes ({first})"
+        ) from None
 
 
 def _refusal(error: Exception) -> str:

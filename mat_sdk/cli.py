@@ -9,22 +9,69 @@ from pathlib import Path
 
 import click
 
+OUR_PACKAGES = ("mat_sdk", "mat_export", "mat_runtime")
+# What our code raises on purpose for a user's mistake; raised from anywhere else, it is a bug.
+EXPECTED = (ValueError, OSError, RuntimeError)
+# The extra that brings each optional module.
+EXTRAS = {"ray": "ray", **dict.fromkeys(
+    ("torch", "onnx", "onnxscript", "mujoco", "dm_control", "pettingzoo", "gymnasium",
+     "gymnasium_robotics", "tensorboard", "matplotlib", "tqdm", "imageio", "imageio_ffmpeg"),
+    "train",
+)}  # fmt: skip
+
 
 def user_errors(command: Callable) -> Callable:
-    """Turn a user's mistake (ValueError, FileNotFoundError) into one line and exit code 1."""
+    """Turn a user's mistake into one line and exit code 1; keep the traceback of a bug.
+
+    A mistake is an error our code raises on purpose (`EXPECTED`, raised in one of
+    `OUR_PACKAGES`), an OS error about a path (permissions, a full disk), or a missing
+    optional package; anything else is a bug, and its traceback is what a bug report needs.
+    """
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
-        except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
-            raise click.ClickException(str(error)) from None
-        except ImportError as error:
+        except click.ClickException:
+            raise
+        except ModuleNotFoundError as error:
+            extra = EXTRAS.get((error.name or "").split(".")[0])
+            if extra is None:
+                _report_bug()
             raise click.ClickException(
-                f"{error}. This command needs the training extra: pip install 'mat-sdk[train]'"
+                f"{error}. This command needs the {extra} extra: pip install 'mat-sdk[{extra}]'"
             ) from None
+        except EXPECTED as error:
+            about_a_path = isinstance(error, OSError) and error.filename is not None
+            if not (about_a_path or _raised_by_us(error)):
+                _report_bug()
+            raise click.ClickException(str(error)) from None
+        except Exception:
+            _report_bug()
 
     return wrapper
+
+
+def _raised_by_us(error: BaseException) -> bool:
+    """Whether the innermost frame of the error's traceback is in one of our packages."""
+    frame = error.__traceback__
+    while frame is not None and frame.tb_next is not None:
+        frame = frame.tb_next
+    module = frame.tb_frame.f_globals.get("__name__", "") if frame else ""
+    return module.split(".")[0] in OUR_PACKAGES
+
+
+def _report_bug() -> None:
+    """Print the traceback of the exception being handled and ask for a report; exit 1."""
+    import traceback
+
+    traceback.print_exc()
+    click.echo(
+        "\nmat: this is an unexpected error, a bug in MAT SDK rather than a problem with your "
+        "input. Please report it with the traceback above and the command you ran.",
+        err=True,
+    )
+    raise SystemExit(1) from None
 
 
 @contextlib.contextmanager
@@ -145,8 +192,12 @@ def parse_counts(text: str, option: str) -> tuple[int, ...]:
     return counts
 
 
-def parse_settings(values: tuple[str, ...]) -> dict:
-    """`("lr=3e-4", "shuffle_agents=true")` -> typed values for `TrainConfig` fields."""
+def parse_settings(values: tuple[str, ...], own: dict[str, str] | None = None) -> dict:
+    """`("lr=3e-4", "shuffle_agents=true")` -> typed values for `TrainConfig` fields.
+
+    `own`: the fields this command sets through options of their own (field -> option); a
+    `--set` of one of them is refused, since the two would contradict each other.
+    """
     import json
 
     settings = {}
@@ -154,6 +205,11 @@ def parse_settings(values: tuple[str, ...]) -> dict:
         key, sep, raw = value.partition("=")
         if not sep:
             raise click.BadParameter(f"{value!r}: use KEY=VALUE", param_hint="--set")
+        if own and key in own:
+            raise click.BadParameter(
+                f"{value!r}: {key} has an option of its own; use {own[key]} instead",
+                param_hint="--set",
+            )
         try:
             settings[key] = json.loads(raw)
         except json.JSONDecodeError:
@@ -161,10 +217,28 @@ def parse_settings(values: tuple[str, ...]) -> dict:
     return settings
 
 
+TRAIN_OPTIONS = {
+    "env": "the ENV_ID argument",
+    "algo": "--algo",
+    "num_envs": "--num-envs",
+    "workers": "--workers",
+    "update_workers": "--update-workers",
+    "seed": "--seed",
+    "device": "--device",
+    "faults": "--fault NAME=zero|remove",
+    "ray": "--ray",
+}
+# What `--resume` may change: how the run is computed, not what is trained.
+RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
+
+
 @main.command()
 @click.argument("env_id")
 @click.option("--algo", default="mat", show_default=True, help="mat | mat-dec | mappo")
-@click.option("--steps", default=1_000_000, show_default=True, help="Total env steps.")
+@click.option(
+    "--steps", default=1_000_000, show_default=True, type=click.IntRange(min=1),
+    help="Total env steps.",
+)  # fmt: skip
 @click.option("--num-envs", default=40, show_default=True, help="Env copies per rollout.")
 @click.option(
     "--workers",
@@ -244,31 +318,35 @@ def train(
 
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
     ckpt = out / CHECKPOINT_NAME
+    asked = {
+        "env": env_id,
+        "algo": algo,
+        "num_envs": num_envs,
+        "workers": workers,
+        "update_workers": update_workers,
+        "seed": seed,
+        "device": device,
+        "faults": parse_faults(faults),
+        "ray": ray_address,
+        **parse_settings(settings, TRAIN_OPTIONS),
+    }
     if resume:
         if not ckpt.exists():
             raise FileNotFoundError(f"nothing to resume: {ckpt} does not exist")
-        trainer = Trainer.load(
-            ckpt, out_dir=out, device=device, workers=workers, update_workers=update_workers
+        given = _given_on_the_command_line(click.get_current_context(), asked)
+        overrides = _resume_overrides(ckpt, given)
+        trainer = Trainer.load(ckpt, out_dir=out, **overrides)
+        changed = ", ".join(f"{k}={v}" for k, v in overrides.items() if k in given)
+        click.echo(
+            f"resuming {ckpt} at {trainer.progress['steps']:,} steps"
+            + (f" (with {changed})" if changed else "")
         )
-        click.echo(f"resuming {ckpt} at {trainer.progress['steps']:,} steps")
     else:
         if ckpt.exists():
             raise FileExistsError(
                 f"{ckpt} exists; pass --resume to continue that run or choose another --out"
             )
-        trainer = Trainer(
-            env_id,
-            algo,
-            out_dir=out,
-            num_envs=num_envs,
-            workers=workers,
-            update_workers=update_workers,
-            seed=seed,
-            device=device,
-            faults=parse_faults(faults),
-            ray=ray_address,
-            **parse_settings(settings),
-        )
+        trainer = Trainer(asked.pop("env"), asked.pop("algo"), out_dir=out, **asked)
     again = f"mat train {env_id} --out {out} --steps {steps} --resume"
     again += f" --workers {workers}" if workers else ""
     again += f" --update-workers {update_workers}" if update_workers else ""
@@ -277,6 +355,40 @@ def train(
         trainer.learn(steps, progress_bar=not quiet)
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+def _given_on_the_command_line(context: click.Context, asked: dict) -> dict:
+    """The fields of `asked` the user set on this command line: typed options and --set."""
+    from click.core import ParameterSource
+
+    parameters = {"env": "env_id", "faults": "faults", "ray": "ray_address"}
+    given = {}
+    for field, value in asked.items():
+        parameter = parameters.get(field, field)
+        from_set = parameter not in context.params  # no option of its own
+        if from_set or context.get_parameter_source(parameter) == ParameterSource.COMMANDLINE:
+            given[field] = value
+    return given
+
+
+def _resume_overrides(ckpt: Path, given: dict) -> dict:
+    """What a resume may change (how it runs) from `given`; anything else that differs from
+    the checkpoint's run is refused in one line, never dropped."""
+    from mat_sdk import checkpoint as checkpoints
+
+    train = checkpoints.load(ckpt)["config"]["train"]
+    overrides = {}
+    for field, value in given.items():
+        if field in RESUME_OVERRIDES:
+            overrides[field] = value
+        elif field not in train:
+            raise click.BadParameter(f"{field} is not a training option", param_hint="--set")
+        elif value != train[field]:
+            raise click.UsageError(
+                f"--resume continues {ckpt} as it was trained, with {field}={train[field]!r}; "
+                f"got {field}={value!r}. Drop that option, or start a new run with another --out"
+            )
+    return overrides
 
 
 @main.command("eval")
@@ -522,3 +634,38 @@ def bench_train(
     from mat_sdk.bench.train import main as run
 
     run(env_id, device=device, compiled=compiled, rounds=rounds, workers=workers, threads=threads)
+
+
+@bench.command("seeds")
+@click.option(
+    "--recipe",
+    "recipes",
+    multiple=True,
+    help="A learning test's recipe (repeatable) [all]: game-mat, game-mat-dec, game-onnx, "
+    "finetune, finetune-gain, continuous.",
+)
+@click.option("--seeds", default=16, show_default=True, help="Seeds 0..N-1 (or --first).")
+@click.option("--first", default=0, show_default=True, help="The first seed.")
+@click.option("--processes", type=int, help="Runs at a time [one per core].")
+@user_errors
+def bench_seeds(recipes: tuple[str, ...], seeds: int, first: int, processes: int | None) -> None:
+    """The learning tests' recipes on many seeds: does each test's bound hold on every seed?
+
+    \b
+    Each recipe trains exactly what its test trains (seconds per run on one core).
+    Examples:
+      mat bench seeds --recipe game-mat --seeds 16
+      mat bench seeds --seeds 4 --first 100      every recipe on seeds 100-103
+    """
+    from mat_sdk.bench.seeds import RECIPES
+    from mat_sdk.bench.seeds import main as run
+
+    unknown = set(recipes) - set(RECIPES)
+    if unknown:
+        raise click.BadParameter(
+            f"unknown recipe(s) {sorted(unknown)}; valid: {', '.join(RECIPES)}",
+            param_hint="--recipe",
+        )
+    if seeds < 1 or first < 0:
+        raise click.BadParameter("--seeds must be >= 1 and --first >= 0")
+    run(recipes or tuple(RECIPES), range(first, first + seeds), processes)

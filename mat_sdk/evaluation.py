@@ -28,8 +28,8 @@ class LoadedPolicy:
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> LoadedPolicy:
         payload = checkpoint.load(path)
-        policy = build_policy(ModelConfig(**payload["config"]["model"]))
-        policy.load_state_dict(payload["model"])
+        policy = build_policy(ModelConfig.from_dict(payload["config"]["model"]))
+        checkpoint.load_weights(policy, payload["model"], path)
         policy.eval()
         norm = None
         if payload["config"]["train"]["normalize_obs"]:

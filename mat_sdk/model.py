@@ -16,7 +16,7 @@ observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All t
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -55,6 +55,10 @@ class ModelConfig:
     n_block: int = 1
 
     def __post_init__(self):
+        for name in ("obs_dim", "action_dim", "n_agents", "n_embd", "n_head", "n_block"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"model {name} must be an integer >= 1, got {value!r}")
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r}; valid: {', '.join(ALGOS)}")
         if self.action_type not in ACTION_TYPES:
@@ -64,6 +68,22 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> ModelConfig:
+        """From `to_dict`'s output (a checkpoint's), refusing a missing or unknown field."""
+        if not isinstance(values, dict):
+            raise ValueError(f"the model config must be a mapping, got {type(values).__name__}")
+        names = {f.name for f in fields(cls)}
+        required = {f.name for f in fields(cls) if f.default is MISSING}
+        unknown, missing = sorted(set(values) - names), sorted(required - set(values))
+        if unknown or missing:
+            raise ValueError(
+                f"model config: unknown field(s) {unknown}, missing {missing}"
+                if unknown
+                else f"model config: missing field(s) {missing}"
+            )
+        return cls(**values)
 
 
 def init_linear(layer: nn.Linear, activated: bool = False, gain: float = 0.01) -> nn.Linear:

@@ -16,6 +16,7 @@ import math
 import numbers
 import re
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from functools import partial
@@ -48,11 +49,14 @@ _RULES = (
         "> 0",
     ),
     (
-        ("seed", "workers", "update_workers", "entropy_coef", "value_coef", "torch_threads"),
+        ("workers", "update_workers", "entropy_coef", "value_coef", "torch_threads",
+         "advantage_std_floor"),
         lambda x: x >= 0,
         ">= 0",
     ),
     (("gamma", "gae_lambda"), lambda x: 0 <= x <= 1, "in [0, 1]"),
+    # env copy i is seeded seed + i, and MuJoCo tasks' numpy streams take seeds below 2**32
+    (("seed",), lambda x: 0 <= x < 2**31, "in 0..2**31 - 1"),
 )  # fmt: skip
 
 
@@ -81,6 +85,11 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     gamma: float = 0.99
     gae_lambda: float = 0.95
+    # Advantages are scaled by their batch std, floored at this (reward units). When nearly
+    # every sample earns the same return, that std is only the critic's error, and dividing by
+    # it turns the error into full-size policy steps that drift a solved policy away (the
+    # coordination game: 3 of 8 seeds fell from 1.0 to 2/3). 0: the official 1e-5 epsilon only.
+    advantage_std_floor: float = 0.0
     n_embd: int = 64
     n_head: int = 1
     n_block: int = 1
@@ -118,6 +127,16 @@ class TrainConfig:
                     raise ValueError(f"{name} must be {what} {rule}, got {value!r}")
                 # numpy scalars become Python numbers: checkpoints load with weights_only
                 setattr(self, name, int(value) if name in integer else float(value))
+        for f in fields(self):
+            value, optional = getattr(self, f.name), f.type.endswith("| None")
+            if value is None and optional:
+                continue
+            if f.type == "bool" and not isinstance(value, bool):
+                raise ValueError(f"{f.name} must be true or false, got {value!r}")
+            if f.type.startswith("dict") and not isinstance(value, dict):
+                raise ValueError(f"{f.name} must be a mapping such as {{...}}, got {value!r}")
+            if f.type.startswith("str") and not isinstance(value, str):
+                raise ValueError(f"{f.name} must be a string, got {value!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
@@ -180,9 +199,10 @@ class Trainer:
     ):
         self.config = TrainConfig.for_algo(algo, env=env, **options)
         cfg = self.config
-        self.device = torch.device(
-            "cuda" if cfg.device == "auto" and torch.cuda.is_available() else cfg.device
-        )
+        if cfg.device == "auto":
+            self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        else:
+            self.device = torch.device(cfg.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(
                 "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
@@ -479,21 +499,22 @@ class Trainer:
         return batch
 
     @staticmethod
-    def _as_rows(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    def _as_rows(batch: dict[str, torch.Tensor], std_floor: float = 0.0) -> dict[str, torch.Tensor]:
         """A rollout's tensors [T, E, ...] as the update's rows [T * E, ...], with the
-        advantages normalised over all of them."""
+        advantages normalised over all of them (their std floored at `std_floor`)."""
         flat = {
             k: v.flatten(0, 1)
             for k, v in batch.items()
             if k not in ("rewards", "terminated", "done")
         }
         advantages = flat["advantages"]
-        flat["advantages"] = (advantages - advantages.mean()) / (advantages.std() + 1e-5)
+        scale = advantages.std().clamp_min(std_floor) + 1e-5
+        flat["advantages"] = (advantages - advantages.mean()) / scale
         return flat
 
     def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         cfg = self.config
-        flat = self._as_rows(batch)
+        flat = self._as_rows(batch, cfg.advantage_std_floor)
         self.gradients.share(flat)
         size = flat["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
@@ -559,6 +580,7 @@ class Trainer:
             "rng": {
                 "torch": self.generator.get_state().cpu(),
                 "shuffle": self.shuffle_generator.get_state(),
+                "device": self.device.type,  # which kind of generator "torch" is
             },
             "obs_norm": self.obs_norm.state_dict(),
             "value_norm": self.value_norm.state_dict(),
@@ -585,10 +607,20 @@ class Trainer:
                 "hyperparameters come from the checkpoint"
             )
         train.update(overrides)
-        algo = train.pop("algo")
-        env = train.pop("env")
-        trainer = cls(env, algo, out_dir=out_dir, **train)
-        trainer.restore(payload)
+        if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
+            raise checkpoint.CheckpointError(f"{path}: config.train names no env and algo")
+        trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
+        try:
+            trainer.restore(payload)
+        except checkpoint.CheckpointError:
+            trainer.close()
+            raise
+        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
+            trainer.close()
+            raise checkpoint.CheckpointError(
+                f"{path}: cannot resume from it, its training state is incomplete or damaged "
+                f"({type(error).__name__}: {error})"
+            ) from None
         return trainer
 
     @classmethod
@@ -626,7 +658,7 @@ class Trainer:
         env = env or trained_env
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
-            pretrained = build_policy(ModelConfig(**model))
+            pretrained = build_policy(ModelConfig.from_dict(model))
             check_compatible(pretrained, trainer.env, env)
             trainer.policy.load_state_dict(payload["model"])
             trainer.obs_norm.load_state_dict(payload["obs_norm"])
@@ -660,9 +692,16 @@ class Trainer:
         self.value_norm.load_state_dict(payload["value_norm"])
         self.optimizer.load_state_dict(self.params.flat_state(payload["optimizer"]))
         self.progress = dict(payload["progress"])
-        if payload["rng"].get("device", "cpu") == self.device.type:
+        saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
+        if saved_on == self.device.type:
             self.generator.set_state(payload["rng"]["torch"])
         else:  # CPU and CUDA generators differ: exact resume needs the same device type
+            warnings.warn(
+                f"the checkpoint's sampling generator is a {saved_on} one and this run is on "
+                f"{self.device.type}: sampling is reseeded, so the run goes on but not exactly "
+                "as it would have on the same device",
+                stacklevel=2,
+            )
             self.generator.manual_seed(self.config.seed + self.progress["updates"])
         self.shuffle_generator.set_state(payload["rng"]["shuffle"])
         self.env.set_state(_to_numpy(payload["envs"]))

@@ -1,4 +1,5 @@
-"""Read and verify a `mat export` bundle: manifest first, then every graph's sha256."""
+"""Read and verify a `mat export` bundle: the manifest against its schema first, then every
+graph's sha256."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from mat_runtime.errors import BundleError
+from mat_runtime.manifest import check_manifest
 
 FORMAT = "mat-onnx"
 SUPPORTED_VERSIONS = (1,)
@@ -45,6 +47,8 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
         raise BundleError(
             f"{manifest_path}: not valid JSON ({err}); re-export the bundle"
         ) from None
+    except RecursionError:
+        raise BundleError(f"{manifest_path}: nested too deeply; re-export the bundle") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise BundleError(f"{manifest_path}: format is not {FORMAT!r}; is this a MAT bundle?")
     version = manifest.get("version")
@@ -53,14 +57,21 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
             f"{manifest_path}: bundle format version {version!r}, this runtime reads "
             f"{', '.join(map(str, SUPPORTED_VERSIONS))}; upgrade mat-sdk or re-export with this one"
         )
+    check_manifest(manifest, str(manifest_path))
+    directory = path.resolve()
     graphs = {}
     for name in select(manifest):
-        entry = manifest.get("graphs", {}).get(name)
+        entry = manifest["graphs"].get(name)
         if entry is None:
             raise BundleError(f"{manifest_path}: lists no {name}; re-export the bundle")
         file = path / name
         if not file.is_file():
             raise BundleError(f"{file}: missing; the bundle is incomplete, re-export it")
+        if file.resolve().parent != directory:  # a symlink out of the bundle
+            raise BundleError(
+                f"{file}: resolves outside the bundle directory ({file.resolve()}); "
+                "a bundle's graphs must be its own files"
+            )
         data = file.read_bytes()
         if hashlib.sha256(data).hexdigest() != entry.get("sha256"):
             raise BundleError(

@@ -26,6 +26,7 @@ Runtime sessions are thread-safe and the call shares no mutable state). A
 from __future__ import annotations
 
 import math
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -34,8 +35,11 @@ import numpy as np
 import onnxruntime as ort
 
 from mat_runtime.bundle import read_bundle
-from mat_runtime.errors import InputError
+from mat_runtime.errors import BundleError, InputError
 
+# The oldest onnxruntime verified to run the graphs of each opset the exporter writes:
+# `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
+ONNXRUNTIME_FOR_OPSET = {24: "1.24.1"}
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
 _CONSTANT_CACHE = 32  # read-only filled buffers (zero noise, all-available masks) kept
 _BOUND_CACHE = 32  # bound [B, n] shapes kept per thread
@@ -117,13 +121,14 @@ class Policy:
         if unknown:
             raise InputError(f"providers {unknown} are not available here; available: {available}")
         bundle = read_bundle(path, _decode_graphs)
-        sessions = {
-            (bundle.manifest["graphs"][name].get("agents"), batched): session(
-                data, threads, providers, batched
-            )
-            for name, data in bundle.graphs.items()
-            for batched in (False, True)
-        }
+        sessions = {}
+        for name, data in bundle.graphs.items():
+            entry = bundle.manifest["graphs"][name]
+            file = bundle.path / name
+            for batched in (False, True):
+                opened = _open_session(file, entry["opset"], data, threads, providers, batched)
+                _check_graph(file, opened, bundle.manifest, entry.get("agents"))
+                sessions[(entry.get("agents"), batched)] = opened
         return cls(bundle.path, bundle.manifest, sessions)
 
     def __repr__(self) -> str:
@@ -329,6 +334,62 @@ class _Bound:
             np.copyto(self.buffers[name], value)
         self.session.run_with_iobinding(self.binding)
         return self.buffers
+
+
+def _version(text: str) -> tuple[int, ...]:
+    """`1.24.1` (or `1.25.0.dev2026`) -> (1, 24, 1)."""
+    return tuple(int(part) for part in re.findall(r"\d+", text)[:3])
+
+
+def _open_session(file: Path, opset: int, data: bytes, *options) -> ort.InferenceSession:
+    """A session for one graph, or `BundleError` saying why this onnxruntime cannot run it."""
+    needed = max(
+        (v for o, v in ONNXRUNTIME_FOR_OPSET.items() if opset >= o), key=_version, default=None
+    )
+    if needed and _version(ort.__version__) < _version(needed):
+        raise BundleError(
+            f"{file}: uses ONNX opset {opset}, which needs onnxruntime >= {needed}; this is "
+            f"onnxruntime {ort.__version__}: pip install -U 'onnxruntime>={needed}'"
+        )
+    try:
+        return session(data, *options)
+    except Exception as error:  # onnxruntime's own Fail / InvalidProtobuf / ... types
+        first = (str(error).splitlines() or [type(error).__name__])[0][:300]
+        raise BundleError(
+            f"{file}: onnxruntime {ort.__version__} cannot load this graph ({first}); "
+            "is it damaged? re-export the bundle with `mat export`"
+        ) from None
+
+
+def _check_graph(file: Path, graph: ort.InferenceSession, manifest: dict, agents) -> None:
+    """The graph's own inputs and outputs agree with the manifest the policy acts on."""
+    discrete = manifest["action"]["type"] == "discrete"
+    inputs = {i.name: i.shape for i in graph.get_inputs()}
+    outputs = {o.name for o in graph.get_outputs()}
+    wanted_in = {"obs", "noise", *(["available"] if discrete else [])}
+    wanted_out = {"actions", "values", *(["logits"] if discrete else ["mean", "std"])}
+    missing = sorted((wanted_in - set(inputs)) | (wanted_out - outputs))
+    if missing:
+        raise BundleError(
+            f"{file}: has no {', '.join(missing)}, so it is not a {manifest['action']['type']} "
+            "control-step graph (manifest action.type); re-export the bundle"
+        )
+    sizes = {"obs": ("obs_dim", manifest["obs_dim"])}
+    sizes["noise"] = ("action.size", manifest["action"]["size"])
+    for name, (field, size) in sizes.items():
+        shape = inputs[name]
+        count = shape[1] if len(shape) == 3 else None
+        if len(shape) != 3 or shape[2] != size or (isinstance(count, int) and count != agents):
+            expected = f"[batch, {agents or 'agents'}, {size}]"
+            raise BundleError(
+                f"{file}: input {name} has shape {shape}, but the manifest ({field}, the graph's "
+                f"agents) says {expected}; re-export the bundle"
+            )
+        if agents is not None and count != agents:
+            raise BundleError(
+                f"{file}: is listed for {agents} agents, but its input {name} has shape {shape}; "
+                "re-export the bundle"
+            )
 
 
 def _decode_graphs(manifest: dict) -> list[str]:

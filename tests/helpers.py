@@ -3,6 +3,7 @@
 import torch
 from torch import nn
 
+from mat_sdk.bench.seeds import GAME  # noqa: F401  (the learning tests' recipe)
 from mat_sdk.trainer import Trainer
 
 TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
@@ -18,18 +19,6 @@ def trained_like(policy: nn.Module) -> nn.Module:
                 if module.bias is not None:
                     nn.init.normal_(module.bias, std=0.1)
     return policy
-
-
-# PPO settings under which MAT solves `coordination-3` in seconds (a few thousand steps).
-GAME = {
-    "num_envs": 32,
-    "rollout_length": 8,
-    "lr": 5e-4,
-    "ppo_epochs": 4,
-    "num_minibatches": 2,
-    "clip": 0.2,
-    "entropy_coef": 0.01,
-}
 
 
 def make_checkpoint(path, env_id="hopper-2x2", algo="mat", **options):

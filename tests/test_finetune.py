@@ -7,45 +7,27 @@ import pytest
 from click.testing import CliRunner
 from helpers import GAME
 
+from mat_sdk.bench import seeds
 from mat_sdk.cli import main
-from mat_sdk.finetune import finetune
 from mat_sdk.trainer import Trainer
 
-CHANGE = {"agent_1": "remove"}  # 3 agents -> 2; agent_2 now follows agent_0 directly
+CHANGE = seeds.FINETUNE_CHANGE  # 3 agents -> 2; agent_2 now follows agent_0 directly
 
 
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory):
-    with Trainer("coordination-3", "mat", **GAME) as trainer:
-        trainer.learn(16_000, progress_bar=False)
-        return trainer.save(tmp_path_factory.mktemp("pre") / "pre.pt")
-
-
-def _returns(trainer: Trainer, steps: int) -> list[float]:
-    returns = []
-    with trainer:
-        trainer.learn(
-            steps, callback=lambda t, m: returns.append(m["return_mean"]), progress_bar=False
-        )
-    return returns
+    return seeds.pretrain_game(tmp_path_factory.mktemp("pre") / "pre.pt")
 
 
 def test_finetuning_adapts_faster_than_training_from_scratch(pretrained, tmp_path):
-    steps = 10 * GAME["num_envs"] * GAME["rollout_length"]  # 10 updates each
-    finetuned = []
-    result = finetune(
-        pretrained, faults=CHANGE, steps=steps, out_dir=tmp_path / "ft", lr=1e-4,
-        eval_episodes=20, progress_bar=False,
-        callback=lambda t, m: finetuned.append(m["return_mean"]),
-    )  # fmt: skip
-    result.trainer.close()
-    assert result.trainer.env.n_agents == 2
-    scratch = _returns(Trainer("coordination-3", "mat", faults=CHANGE, **GAME), steps)
-    assert len(finetuned) == len(scratch) == 10
-    assert np.mean(finetuned[-5:]) >= 0.95 and result.final_mean >= 0.95
+    """One seed is safe: `mat bench seeds --recipe finetune --recipe finetune-gain`."""
+    finetuned, scratch, final = seeds.finetune_against_scratch(pretrained, tmp_path / "ft")
+    assert len(finetuned) == len(scratch) == seeds.FINETUNE_UPDATES
+    assert np.mean(finetuned[-5:]) >= 0.95 and final >= 0.95, (finetuned, final)
     assert np.mean(finetuned[-5:]) >= np.mean(scratch[-5:]) + 0.15, (finetuned, scratch)
     summary = json.loads((tmp_path / "ft" / "finetune.json").read_text())
-    assert summary["agents"] == ["agent_0", "agent_2"] and summary["steps"] == steps
+    assert summary["agents"] == ["agent_0", "agent_2"]
+    assert summary["steps"] == seeds.FINETUNE_UPDATES * GAME["num_envs"] * GAME["rollout_length"]
     assert len(summary["zero_shot"]["returns"]) == 20 and summary["final"]["mean"] >= 0.95
 
 

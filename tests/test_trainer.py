@@ -13,56 +13,23 @@ import torch
 from helpers import GAME
 
 from mat_sdk import checkpoint, envs
+from mat_sdk.bench import seeds
 from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
 
 
-def train_returns(env_id, algo, steps, **options):
-    returns = []
-    with Trainer(env_id, algo, **options) as trainer:
-        trainer.learn(
-            steps, progress_bar=False, callback=lambda t, m: returns.append(m["return_mean"])
-        )
-    return returns
-
-
 def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
-    mat = np.mean(train_returns("coordination-3", "mat", 16_000, **GAME)[-5:])
-    dec = np.mean(train_returns("coordination-3", "mat-dec", 16_000, **GAME)[-5:])
-    # random play scores 2/27 = 0.07; decentralised actors can reach at most 1/3
-    assert mat >= 0.9, mat
-    assert dec <= 0.5, dec
+    """One seed is safe: `mat bench seeds --recipe game-mat --recipe game-mat-dec` shows the
+    bounds hold on every seed swept (BENCHMARKS.md)."""
+    mat, dec = seeds.game_return("mat"), seeds.game_return("mat-dec")
+    assert mat >= 0.9, mat  # random play scores 2/27 = 0.07
+    assert dec <= 0.5, dec  # decentralised actors can reach at most 1/3
     assert mat - dec >= 0.4
 
 
-def random_team_return(env_id, episodes=16, **options):
-    vec = envs.make_vec(env_id, episodes, seed=100, **options)
-    vec.reset()
-    rng = np.random.default_rng(0)
-    returns = []
-    while len(returns) < episodes:
-        _, _, _, _, info = vec.step(rng.uniform(-1, 1, (episodes, vec.n_agents, vec.act_dim)))
-        returns += info["episode_return"][info["done"]].tolist()
-    return float(np.mean(returns))
-
-
 def test_short_continuous_run_beats_a_random_team():
-    options = {"episode_limit": 100}
-    random = random_team_return("cheetah-2x3", **options)
-    returns = train_returns(
-        "cheetah-2x3",
-        "mat",
-        12_800,
-        num_envs=16,
-        rollout_length=50,
-        lr=1e-3,
-        ppo_epochs=5,
-        num_minibatches=4,
-        clip=0.2,
-        entropy_coef=0.0,
-        env_options=options,
-    )
-    learned = np.nanmean(returns[-4:])
-    assert learned >= max(2.0, 3 * random), (learned, random)
+    bound = seeds.continuous_bound()
+    learned = seeds.continuous_return()
+    assert learned >= bound, (learned, bound)
 
 
 TINY = {

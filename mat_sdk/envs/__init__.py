@@ -21,6 +21,7 @@ are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueE
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from collections.abc import Mapping
@@ -60,10 +61,27 @@ __all__ = [
 
 def _build_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):
     if env_id.startswith("coordination-"):
-        return CoordinationGame(env_id, faults, **options)
-    if env_id.startswith(_MAMUJOCO):
-        return MaMuJoCoTeam(env_id, faults, **options)
-    return RobotTeam(spec_for(env_id), faults, **options)
+        kind, first = CoordinationGame, env_id
+    elif env_id.startswith(_MAMUJOCO):
+        kind, first = MaMuJoCoTeam, env_id
+    else:
+        kind, first = RobotTeam, spec_for(env_id)
+    _check_options(kind, env_id, options)
+    return kind(first, faults, **options)
+
+
+def _check_options(kind: type, env_id: str, options: Mapping[str, Any]) -> None:
+    """Refuse an option the env does not take, naming it and the ones it does."""
+    valid = [
+        name
+        for name, p in inspect.signature(kind.__init__).parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    ]
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise ValueError(
+            f"unknown env option(s) {unknown} for {env_id}; it takes {', '.join(valid)}"
+        )
 
 
 def make_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):

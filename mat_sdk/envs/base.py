@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import math
+import numbers
+import warnings
+from collections.abc import Callable
+
 import numpy as np
 
 
@@ -12,6 +17,42 @@ def checked_episode_limit(given: int | None, default: int) -> int:
     if isinstance(given, bool) or not isinstance(given, int | np.integer) or given < 1:
         raise ValueError(f"episode_limit must be an integer >= 1, got {given!r}")
     return int(given)
+
+
+def real_actions(actions, where: Callable[[tuple[int, ...]], str]) -> np.ndarray:
+    """`actions` as a float64 array, refusing what is not a real number (a string, None, a
+    bool, a complex number) instead of letting numpy coerce it; `where(index)` names the
+    agent of an element. Shapes are the caller's to check."""
+    array = _as_array(actions)
+    if array.dtype.kind in "fiu":
+        return array.astype(np.float64, copy=False)
+    if array.dtype.kind == "O":
+        index = next((i for i in np.ndindex(array.shape) if not _is_real(array[i])), None)
+        if index is None:
+            return array.astype(np.float64)
+    else:
+        index = (0,) * array.ndim
+    value = array[index]
+    value = value.item() if isinstance(value, np.generic) else value
+    raise ValueError(
+        f"{where(index)}: action must be a real number, got {value!r} ({type(value).__name__})"
+    )
+
+
+def action_shape(actions) -> tuple[int, ...]:
+    """The shape of `actions` as given, before any conversion."""
+    return _as_array(actions).shape
+
+
+def _as_array(actions) -> np.ndarray:
+    try:
+        return np.asarray(actions)
+    except ValueError as error:  # ragged nesting
+        raise ValueError(f"actions are not a rectangular array ({error})") from None
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
 
 
 def invalid_action(
@@ -28,6 +69,37 @@ def invalid_action(
     if valid.all():
         return None
     return tuple(int(i) for i in np.argwhere(~valid)[0]), problem
+
+
+class PhysicsDiverged(RuntimeWarning):
+    """The simulation blew up (MuJoCo's unstable-acceleration reset, or NaN/inf state): the
+    episode was truncated there, with reward 0 and non-finite observations zeroed."""
+
+
+_RESET_WARNINGS = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC")
+
+
+def physics_resets(data) -> int:
+    """How often MuJoCo has reset this `mjData` because its state blew up."""
+    import mujoco
+
+    return sum(data.warning[getattr(mujoco.mjtWarning, name)].number for name in _RESET_WARNINGS)
+
+
+def diverged(physics_reset: bool, obs: np.ndarray, reward: float) -> bool:
+    """Whether a step must end the episode: MuJoCo reset the physics, or state went NaN/inf."""
+    return physics_reset or not (math.isfinite(reward) and np.isfinite(obs).all())
+
+
+def end_diverged(env_id: str, step: int, obs: np.ndarray) -> tuple[np.ndarray, float]:
+    """Warn, and what a diverged step returns instead: finite obs, reward 0."""
+    warnings.warn(
+        f"{env_id}: the physics diverged at step {step} (unstable accelerations or NaN state); "
+        "the episode is truncated there with reward 0",
+        PhysicsDiverged,
+        stacklevel=3,
+    )
+    return np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0), 0.0
 
 
 def render_failed(error: Exception) -> RuntimeError:
@@ -67,12 +139,13 @@ class ArrayTeam:
 
     def check_actions(self, actions) -> np.ndarray:
         """`actions` as a float64 `[n_agents, act_dim]` array of finite values, or ValueError."""
-        array = np.asarray(actions, dtype=np.float64)
-        if array.shape != (self.n_agents, self.act_dim):
+        shape = action_shape(actions)
+        if shape != (self.n_agents, self.act_dim):
             raise ValueError(
-                f"actions have shape {array.shape}, expected (n_agents, act_dim) = "
+                f"actions have shape {shape}, expected (n_agents, act_dim) = "
                 f"({self.n_agents}, {self.act_dim}) for {self.env_id}"
             )
+        array = real_actions(actions, lambda index: self.agents[index[0]])
         invalid = invalid_action(array, self.action_type, self.n_actions)
         if invalid:
             (row,), problem = invalid

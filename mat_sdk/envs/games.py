@@ -25,7 +25,7 @@ class CoordinationGame(ArrayTeam):
     description = "discrete test game: N agents pick from N options, all different (N >= 2)"
 
     def __init__(
-        self, env_id: str, faults: Mapping[str, str] | None = None, *, seed: int | None = None, **_
+        self, env_id: str, faults: Mapping[str, str] | None = None, *, seed: int | None = None
     ):
         match = _ID.match(env_id)
         if not match or int(match.group(1)) < 2:

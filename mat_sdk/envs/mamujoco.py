@@ -12,9 +12,17 @@ import io
 import re
 from collections.abc import Mapping
 
+import mujoco
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam, checked_episode_limit, render_failed
+from mat_sdk.envs.base import (
+    ArrayTeam,
+    checked_episode_limit,
+    diverged,
+    end_diverged,
+    physics_resets,
+    render_failed,
+)
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
@@ -45,7 +53,13 @@ class MaMuJoCoTeam(ArrayTeam):
             raise ValueError(f"MaMuJoCo ids look like 'mamujoco:HalfCheetah-6x1', got {env_id!r}")
         scenario, conf = match.groups()
         self.env_id = env_id
-        self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
+        try:
+            self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
+        except Exception as error:  # "Custom env not implemented!", "UNKNOWN partitioning ..."
+            raise ValueError(
+                f"{env_id!r}: Gymnasium-Robotics' MaMuJoCo has no scenario {scenario!r} with "
+                f"partition {conf!r} ({error}); e.g. mamujoco:HalfCheetah-6x1, mamujoco:Ant-4x2"
+            ) from None
         self.possible_agents = list(self._env.possible_agents)
         self.agents = self.possible_agents
         self.n_agents = len(self.agents)
@@ -76,11 +90,18 @@ class MaMuJoCoTeam(ArrayTeam):
         per_agent = {
             name: actions[row, : self.act_dims[row]] for row, name in enumerate(self.agents)
         }
+        data = self._env.single_agent_env.unwrapped.data
+        resets = physics_resets(data)  # MuJoCo resets a blown-up simulation silently
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
         first = self.agents[0]
+        packed, reward = self._pack(obs), float(rewards[first])
+        reset = physics_resets(data) != resets
+        if diverged(reset, packed, reward):
+            packed, reward = end_diverged(self.env_id, self._steps, packed)
+            return packed, reward, False, True
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit
-        return self._pack(obs), float(rewards[first]), bool(terminations[first]), truncated
+        return packed, reward, bool(terminations[first]), truncated
 
     def _fault_mask(self, faults: Mapping[str, str]) -> np.ndarray:
         """`[n, act_dim]`: 0 where a "zero" fault silences the entry's actuator, else 1.
@@ -113,7 +134,6 @@ class MaMuJoCoTeam(ArrayTeam):
         return mask
 
     def get_state(self) -> dict:
-        import mujoco
 
         env = self._env.single_agent_env.unwrapped
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
@@ -126,7 +146,6 @@ class MaMuJoCoTeam(ArrayTeam):
         }
 
     def set_state(self, state: dict) -> None:
-        import mujoco
 
         env = self._env.single_agent_env.unwrapped
         mujoco.mj_setState(
@@ -148,7 +167,6 @@ class MaMuJoCoTeam(ArrayTeam):
         GL backend (MUJOCO_GL) at the first frame, where `mujoco.Renderer` would take the one
         in force when `mujoco` was first imported.
         """
-        import mujoco
         from dm_control.mujoco import Physics, wrapper
 
         env = self._env.single_agent_env.unwrapped

@@ -17,7 +17,14 @@ from collections.abc import Mapping
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.base import ArrayTeam, checked_episode_limit, render_failed
+from mat_sdk.envs.base import (
+    ArrayTeam,
+    checked_episode_limit,
+    diverged,
+    end_diverged,
+    physics_resets,
+    render_failed,
+)
 from mat_sdk.envs.decomposition import (
     actuator_joints,
     decompose,
@@ -197,15 +204,19 @@ class RobotTeam(ArrayTeam):
         np.minimum(flat, 1.0, out=flat)
         np.maximum(flat, -1.0, out=flat)
         self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
+        resets = physics_resets(self._data)  # MuJoCo resets a blown-up simulation silently
         # dm_control's legacy step: positions and sensors are up to date for the reward.
         mujoco.mj_step2(self._model, self._data)
         if self.substeps > 1:
             mujoco.mj_step(self._model, self._data, self.substeps - 1)
         mujoco.mj_step1(self._model, self._data)
         self._steps += 1
-        reward = float(self._reward(self.physics))
+        obs, reward = self.observe(), float(self._reward(self.physics))
+        if diverged(physics_resets(self._data) != resets, obs, reward):
+            obs, reward = end_diverged(self.env_id, self._steps, obs)
+            return obs, reward, False, True
         terminated = self._task.get_termination(self.physics) is not None
-        return self.observe(), reward, terminated, self._steps >= self.episode_limit
+        return obs, reward, terminated, self._steps >= self.episode_limit
 
     def observe(self) -> np.ndarray:
         source = np.concatenate(

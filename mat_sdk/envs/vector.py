@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from mat_sdk import processes
-from mat_sdk.envs.base import invalid_action
+from mat_sdk.envs.base import action_shape, invalid_action, real_actions
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
 _FIELDS = {  # name: (shape after [num_envs], dtype)
@@ -193,13 +193,13 @@ class VecTeam:
 
     def step(self, actions: np.ndarray):
         """Step every copy; returns obs, reward, terminated, truncated, info (all arrays)."""
-        actions = np.asarray(actions, dtype=np.float64)
         expected = (self.num_envs, self.n_agents, self.act_dim)
-        if actions.shape != expected:
+        shape = action_shape(actions)
+        if shape != expected:
             raise ValueError(
-                f"actions have shape {actions.shape}, expected (num_envs, n_agents, act_dim) = "
-                f"{expected}"
+                f"actions have shape {shape}, expected (num_envs, n_agents, act_dim) = {expected}"
             )
+        actions = real_actions(actions, lambda i: f"env {i[0]}, {self.agents[i[1]]}")
         invalid = invalid_action(actions, self.action_type, self.n_actions)
         if invalid:
             (env, agent), problem = invalid
