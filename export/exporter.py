@@ -61,13 +61,12 @@ def export(
     out_dir = Path(out_dir)
     _check_target(out_dir, force, Path(checkpoint_path))
     payload = checkpoint.load(checkpoint_path)
-    policy, normalizer, value_scale = _rebuild(payload)
-    _check_env(payload, policy.cfg)
-    cfg = policy.cfg
-    counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    staging = _staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
+        policy, normalizer, value_scale = _rebuild(payload)
+        _check_env(payload, policy.cfg)
+        cfg = policy.cfg
+        counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
         graphs = _export_graphs(policy, normalizer, value_scale, staging)
         manifest = _manifest(payload, cfg, graphs, checkpoint_path)
         folded = (
@@ -116,7 +115,7 @@ def export(
 def _check_target(out_dir: Path, force: bool, checkpoint_path: Path) -> None:
     """Refuse, before any work, to write where it would lose something: over anything but a
     bundle, over a bundle unless `force`, over a bundle that also holds other files (notes,
-    the checkpoint itself), through a symlink, or into a directory that cannot be written."""
+    the checkpoint itself), or through a symlink."""
     if out_dir.is_symlink():
         raise ExportError(
             f"{out_dir} is a symlink; not replacing it or what it points to; "
@@ -130,11 +129,6 @@ def _check_target(out_dir: Path, force: bool, checkpoint_path: Path) -> None:
             f"{out_dir} holds the checkpoint being exported ({checkpoint_path}); "
             "choose another directory for the bundle"
         )
-    parent = next((p for p in (out_dir, *out_dir.parents) if p.exists()), Path("."))
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ExportError(f"cannot write the bundle: {parent} is not writable")
-    if out_dir.exists() and not os.access(out_dir.parent, os.W_OK | os.X_OK):
-        raise ExportError(f"cannot replace {out_dir}: {out_dir.parent} is not writable")
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
     manifest = out_dir / "manifest.json"
@@ -158,6 +152,18 @@ def _check_target(out_dir: Path, force: bool, checkpoint_path: Path) -> None:
         )
     if not force:
         raise ExportError(f"{out_dir} exists; pass --force (force=True) to replace it")
+
+
+def _staging(out_dir: Path) -> Path:
+    """The empty directory beside `out_dir` that the bundle is built in."""
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    except OSError as error:
+        raise ExportError(
+            f"cannot write the bundle {out_dir} ({error.strerror or error}: "
+            f"{error.filename or out_dir.parent}); choose a directory you can write to"
+        ) from None
 
 
 def _replace(staging: Path, out_dir: Path) -> None:

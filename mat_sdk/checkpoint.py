@@ -148,10 +148,19 @@ def load_weights(module: torch.nn.Module, state: dict[str, Any], path: str | os.
 
 
 def _refusal(error: Exception) -> str:
-    """The specific part of torch's long unpickling message (its advice to drop
-    weights_only would let the file run code, so it is not passed on)."""
-    found = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\. Please|\n|$)", str(error))
-    return found.group(1) if found else (str(error).splitlines() or [type(error).__name__])[0]
+    """The specific reason in torch's long unpickling message, e.g. "unsupported GLOBAL
+    posix.system whose module posix is blocked". Its advice to drop weights_only would let
+    the file run code, so it is never passed on."""
+    text = str(error)
+    for pattern in (
+        r"(?:Trying to load |WeightsUnpickler error:\s*)(.+?)(?:\.\s|\.?\n|\.?$)",
+        r"(Unsupported (?:global|operand|class)[^\n]*?)(?:\.\s|\.?\n|\.?$)",
+    ):
+        found = re.search(pattern, text, re.IGNORECASE)
+        if found:
+            return found.group(1).strip()
+    lines = [line for line in text.splitlines() if line.strip() and "weights_only" not in line]
+    return lines[0] if lines else type(error).__name__
 
 
 def _directory_hint(directory: Path) -> str:

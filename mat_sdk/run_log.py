@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 
 from mat_sdk.checkpoint import remove_stale_temp_files
@@ -13,8 +14,9 @@ CURVE_NAME = "learning_curve.png"
 
 
 class RunLog:
-    """Appends one row per update. On resume, rows after the checkpoint's update are dropped,
-    so a run killed between checkpoints and resumed has no duplicate rows."""
+    """Appends one row per update. On resume the file is repaired to what the checkpoint
+    holds: rows after the checkpoint's update are dropped (a run killed between checkpoints
+    and resumed has no duplicate rows), and so is a torn last line (killed mid-write)."""
 
     def __init__(self, out_dir: Path, resume_after: int = 0):
         from torch.utils.tensorboard import SummaryWriter
@@ -23,20 +25,26 @@ class RunLog:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         remove_stale_temp_files(self.out_dir)
         self.path = self.out_dir / METRICS_NAME
-        rows = read_metrics(self.path) if self.path.exists() else []
+        self._columns, rows, intact = _complete_rows(self.path)
         kept = [r for r in rows if int(r["updates"]) <= resume_after]
-        self._columns = list(rows[0]) if rows else None
-        if len(kept) != len(rows):
+        if self._columns is None and not intact:  # only a torn header: nothing to keep
+            self.path.write_text("")
+        elif len(kept) != len(rows) or not intact:
             self._rewrite(kept)
         self._file = self.path.open("a", newline="")
         self._writer = None
         self._tensorboard = SummaryWriter(log_dir=str(self.out_dir / "tensorboard"))
 
     def _rewrite(self, rows: list[dict]) -> None:
-        with self.path.open("w", newline="") as handle:
+        """Replace the file atomically: a crash during the repair loses no row."""
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        with tmp.open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=self._columns)
             writer.writeheader()
             writer.writerows(rows)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, self.path)
 
     def write(self, metrics: dict) -> None:
         if self._writer is None:
@@ -55,6 +63,34 @@ class RunLog:
         self._file.close()
         self._tensorboard.close()
         plot_curve(self.path, self.out_dir / CURVE_NAME)
+
+
+def _complete_rows(path: Path) -> tuple[list[str] | None, list[dict], bool]:
+    """(header, the rows that are whole, whether the file was intact) of a metrics file.
+
+    A row is whole when its line ends in a newline, it has every column, and its update
+    number reads; no header (an empty or missing file) gives (None, [], True)."""
+    if not path.exists():
+        return None, [], True
+    text = path.read_text()
+    lines = text.splitlines(keepends=True)
+    whole = [line for line in lines if line.endswith("\n")]
+    if not whole:
+        return None, [], not text
+    reader = csv.DictReader(whole)
+    columns = list(reader.fieldnames or [])
+    rows = [row for row in reader if _readable(row, columns)]
+    return columns, rows, len(rows) + 1 == len(lines)
+
+
+def _readable(row: dict, columns: list[str]) -> bool:
+    if None in row or any(row.get(c) is None for c in columns):
+        return False
+    try:
+        int(row["updates"])
+    except (KeyError, ValueError):
+        return False
+    return True
 
 
 def read_metrics(path: Path) -> list[dict]:

@@ -660,7 +660,7 @@ class Trainer:
         try:
             pretrained = build_policy(ModelConfig.from_dict(model))
             check_compatible(pretrained, trainer.env, env)
-            trainer.policy.load_state_dict(payload["model"])
+            checkpoint.load_weights(trainer.policy, payload["model"], checkpoint_path)
             trainer.obs_norm.load_state_dict(payload["obs_norm"])
             trainer.value_norm.load_state_dict(payload["value_norm"])
             if not reset_optimizer:
@@ -687,7 +687,7 @@ class Trainer:
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""
-        self.policy.load_state_dict(payload["model"])
+        checkpoint.load_weights(self.policy, payload["model"], "the checkpoint")
         self.obs_norm.load_state_dict(payload["obs_norm"])
         self.value_norm.load_state_dict(payload["value_norm"])
         self.optimizer.load_state_dict(self.params.flat_state(payload["optimizer"]))

@@ -299,6 +299,8 @@ class Policy:
         if isinstance(seed, np.random.Generator):
             rng = seed
         elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            if seed < 0:
+                raise InputError(f"seed must be an int >= 0, got {seed}")
             rng = np.random.default_rng(int(seed))
         else:
             raise InputError(

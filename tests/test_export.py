@@ -116,6 +116,47 @@ def test_bad_input_is_refused_and_nothing_is_overwritten(mat_checkpoint, tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+def test_force_replaces_only_a_bundle_of_its_own_files(mat_checkpoint, tmp_path):
+    import shutil
+    import time
+
+    bundle = tmp_path / "bundle"
+    export(mat_checkpoint, bundle)
+    (bundle / "notes.txt").write_text("mine")
+    with pytest.raises(ExportError, match=r"holds files that are not the bundle's \(notes.txt\)"):
+        export(mat_checkpoint, bundle, force=True)
+    assert (bundle / "notes.txt").read_text() == "mine" and (bundle / "decode.onnx").exists()
+
+    run = tmp_path / "run"  # the checkpoint exported into its own directory's bundle
+    export(mat_checkpoint, run)
+    shutil.copy(mat_checkpoint, run / "checkpoint.pt")
+    with pytest.raises(ExportError, match="holds the checkpoint being exported"):
+        export(run / "checkpoint.pt", run, force=True)
+    assert (run / "checkpoint.pt").exists()
+
+    link = tmp_path / "link"
+    link.symlink_to(bundle)
+    start = time.monotonic()
+    with pytest.raises(ExportError, match="is a symlink"):
+        export(mat_checkpoint, link, force=True)
+    assert time.monotonic() - start < 5  # refused before any work
+    assert (bundle / "notes.txt").exists()
+
+    not_a_directory = tmp_path / "file"
+    not_a_directory.write_text("x")
+    with pytest.raises(ExportError, match="cannot write the bundle"):
+        export(mat_checkpoint, not_a_directory / "bundle")
+
+
+def test_a_checkpoint_of_an_unknown_env_exports_nothing(mat_checkpoint, tmp_path):
+    payload = checkpoint.load(mat_checkpoint)
+    payload["config"]["env"]["id"] = payload["config"]["train"]["env"] = "cheetah-9x9"
+    strange = checkpoint.save_atomic(payload, tmp_path / "strange.pt")
+    with pytest.raises(ExportError, match="trained on env 'cheetah-9x9', which cannot be made"):
+        export(strange, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 def test_mat_export_command(mat_checkpoint, tmp_path):
     out = tmp_path / "cli_bundle"
     result = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out)])

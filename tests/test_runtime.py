@@ -375,3 +375,112 @@ def test_runtime_imports_only_numpy_and_onnxruntime():
             for name in names:
                 top = name.split(".")[0]
                 assert top in allowed or top in stdlib, f"{path.name} imports {name}"
+
+
+def _rehash(directory, name):
+    import hashlib
+
+    return hashlib.sha256((directory / name).read_bytes()).hexdigest()
+
+
+def test_graph_paths_must_stay_inside_the_bundle(bundles, tmp_path):
+    import shutil
+
+    outside = tmp_path / "outside.onnx"
+    outside.write_bytes(b"secret")
+    bundle = tmp_path / "traversal"
+    shutil.copytree(bundles["mat"][1], bundle)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    sneaky = "decode_n2/../../outside.onnx"
+    manifest["graphs"][sneaky] = {**manifest["graphs"]["decode_n2.onnx"], "sha256": "0" * 64}
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError, match=r"graphs\.decode_n2/\.\./\.\./outside\.onnx is not a"):
+        Policy.load(bundle)
+
+    linked = tmp_path / "linked"
+    shutil.copytree(bundles["mat"][1], linked)
+    (linked / "decode_n2.onnx").unlink()
+    (linked / "decode_n2.onnx").symlink_to(outside)
+    manifest = json.loads((linked / "manifest.json").read_text())
+    manifest["graphs"]["decode_n2.onnx"]["sha256"] = _rehash(linked, "decode_n2.onnx")
+    (linked / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BundleError, match="resolves outside the bundle directory"):
+        Policy.load(linked)
+
+
+def _damaged(source, target, edit):
+    import shutil
+
+    shutil.copytree(source, target)
+    manifest = json.loads((target / "manifest.json").read_text())
+    edit(manifest, target)
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    return target
+
+
+def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
+    def set_field(*path_and_value):
+        *path, value = path_and_value
+
+        def edit(manifest, _):
+            *parents, last = path
+            node = manifest
+            for key in parents:
+                node = node[key]
+            if value is KeyError:
+                del node[last]
+            else:
+                node[last] = value
+
+        return edit
+
+    def truncate(manifest, directory):
+        graph = directory / "decode.onnx"
+        graph.write_bytes(graph.read_bytes()[:500])
+        manifest["graphs"]["decode.onnx"]["sha256"] = _rehash(directory, "decode.onnx")
+
+    def relabel(manifest, directory):  # decode_n2's graph listed as the 3-agent one
+        (directory / "decode_n2.onnx").rename(directory / "decode_n3.onnx")
+        manifest["graphs"]["decode_n3.onnx"] = {
+            **manifest["graphs"].pop("decode_n2.onnx"),
+            "agents": 3,
+        }
+
+    cases = {
+        "obs_dim": (set_field("obs_dim", -17), r"obs_dim must be an integer in 1\.\."),
+        "huge": (set_field("obs_dim", 10**30), r"obs_dim must be an integer in 1\.\."),
+        "size": (set_field("action", "size", 5), r"input noise has shape .*action\.size"),
+        "type": (set_field("action", "type", 3), r"action\.type must be one of"),
+        "low": (set_field("action", "low", "x"), r"action\.low must be a finite number"),
+        "bounds": (set_field("action", "low", 2.0), r"action\.low must be below action\.high"),
+        "algo": (set_field("algo", KeyError), "algo is missing"),
+        "agents": (set_field("agents", [1]), "agents must be an object"),
+        "max": (set_field("agents", "max", 0), r"agents\.max must be an integer"),
+        "entry": (set_field("graphs", "decode.onnx", "x"), r"graphs\.decode\.onnx must be an"),
+        "count": (set_field("graphs", "decode_n2.onnx", "agents", 5), r"decode_n2\.onnx\.agents must be 2"),
+        "relabelled": (relabel, r"decode_n3\.onnx: .*has shape \['batch', 2"),
+        "truncated": (truncate, "cannot load this graph"),
+    }  # fmt: skip
+    for case, (edit, message) in cases.items():
+        target = _damaged(bundles["mat"][1], tmp_path / case, edit)
+        with pytest.raises(BundleError, match=message):
+            Policy.load(target)
+    deep = _damaged(bundles["mat"][1], tmp_path / "deep", lambda m, d: None)
+    (deep / "manifest.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(BundleError, match="manifest.json"):
+        Policy.load(deep)
+
+
+def test_an_onnxruntime_too_old_for_the_opset_is_named(bundles, monkeypatch):
+    import mat_runtime.policy as runtime_policy
+
+    monkeypatch.setattr(runtime_policy.ort, "__version__", "1.23.2")
+    with pytest.raises(BundleError, match=r"opset 24, which needs onnxruntime >= 1\.24\.1"):
+        Policy.load(bundles["mat"][1])
+
+
+def test_a_negative_seed_is_an_input_error(bundles):
+    policy = Policy.load(bundles["mat"][1])
+    with pytest.raises(InputError, match="seed must be an int >= 0, got -1"):
+        policy.act(_obs(policy, 2), deterministic=False, seed=-1)
+    assert policy.act(_obs(policy, 2)).shape == (2, policy.action_size)  # still serving

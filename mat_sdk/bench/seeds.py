@@ -23,8 +23,10 @@ from mat_sdk import envs
 from mat_sdk.bench import machine, print_table
 from mat_sdk.processes import usable_cores
 
-# PPO settings under which MAT solves `coordination-3` in a few thousand steps. The advantage
-# floor keeps a solved policy solved (TrainConfig.advantage_std_floor).
+# PPO settings under which MAT solves `coordination-3` in a few thousand steps, on every seed
+# swept. Once the game is solved the advantages are the critic's noise: the std floor keeps
+# that noise small (TrainConfig.advantage_std_floor), and a small entropy bonus (0.003, not
+# 0.01) keeps the bonus itself from pushing a solved policy back towards uniform choices.
 GAME = {
     "num_envs": 32,
     "rollout_length": 8,
@@ -32,7 +34,7 @@ GAME = {
     "ppo_epochs": 4,
     "num_minibatches": 2,
     "clip": 0.2,
-    "entropy_coef": 0.01,
+    "entropy_coef": 0.003,
     "advantage_std_floor": 0.05,
 }
 GAME_STEPS = 16_000

@@ -1,0 +1,86 @@
+"""Checkpoints are data, not code: a damaged or edited one is refused naming what is wrong."""
+
+import copy
+import os
+
+import pytest
+import torch
+from helpers import make_checkpoint
+
+from mat_export import export
+from mat_sdk import checkpoint
+from mat_sdk.checkpoint import CheckpointError
+from mat_sdk.evaluation import LoadedPolicy
+from mat_sdk.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def payload(tmp_path_factory):
+    path = make_checkpoint(tmp_path_factory.mktemp("ckpt") / "good.pt", "coordination-3")
+    return checkpoint.load(path)
+
+
+def _edited(payload, tmp_path, name, edit):
+    changed = copy.deepcopy(payload)
+    edit(changed)
+    path = tmp_path / f"{name}.pt"
+    torch.save(changed, path)  # as an editor would: no validation on the way out
+    return path
+
+
+EDITS = {
+    "string version": (lambda p: p.update(version="1"), "version must be an integer"),
+    "list config": (lambda p: p.update(config=[1, 2]), "config must be a mapping"),
+    "no weights": (lambda p: p.pop("model"), "model must map parameter names to tensors"),
+    "extra model field": (
+        lambda p: p["config"]["model"].update(colour="red"),
+        r"config.model is invalid .*unknown field\(s\) \['colour'\]",
+    ),
+    "string model field": (
+        lambda p: p["config"]["model"].update(n_embd="64"),
+        "model n_embd must be an integer >= 1, got '64'",
+    ),
+    "no env id": (lambda p: p["config"]["env"].pop("id"), "config.env.id must be a string"),
+    "no normaliser": (lambda p: p.pop("obs_norm"), "obs_norm must hold the tensors mean, var"),
+    "bad progress": (lambda p: p.update(progress={"steps": -1}), "progress must hold"),
+    "wrong weights": (
+        lambda p: p["model"].update({"encoder.ln.weight": torch.zeros(3)}),
+        "its weights do not fit the model",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(EDITS))
+def test_an_edited_checkpoint_is_refused_by_every_reader(payload, tmp_path, case):
+    edit, message = EDITS[case]
+    path = _edited(payload, tmp_path, case.replace(" ", "_"), edit)
+    readers = {
+        "eval": LoadedPolicy.from_checkpoint,
+        "resume": Trainer.load,
+        "finetune": Trainer.from_pretrained,
+        "export": lambda p: export(p, tmp_path / "bundle"),
+    }
+    for reader, read in readers.items():
+        with pytest.raises(CheckpointError, match=message):
+            read(path)
+        assert not (tmp_path / "bundle").exists(), reader
+
+
+def test_resume_names_a_missing_training_state(payload, tmp_path):
+    path = _edited(payload, tmp_path, "no_rng", lambda p: p.pop("rng"))
+    with pytest.raises(CheckpointError, match="cannot resume from it.*KeyError: 'rng'"):
+        Trainer.load(path)
+    assert LoadedPolicy.from_checkpoint(path) is not None  # evaluation needs no rng
+
+
+def test_a_pickle_that_would_run_code_is_refused_with_the_reason(tmp_path):
+    class RunsCode:
+        def __reduce__(self):
+            return (os.system, ("echo this must never run",))
+
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "mat-checkpoint", "version": 1, "x": RunsCode()}, evil)
+    with pytest.raises(CheckpointError, match="unsupported GLOBAL posix.system") as refused:
+        checkpoint.load(evil)
+    message = str(refused.value)
+    assert "weights_only" not in message and "\n" not in message
