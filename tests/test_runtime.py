@@ -457,7 +457,10 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
         "agents": (set_field("agents", [1]), "agents must be an object"),
         "max": (set_field("agents", "max", 0), r"agents\.max must be an integer"),
         "entry": (set_field("graphs", "decode.onnx", "x"), r"graphs\.decode\.onnx must be an"),
-        "count": (set_field("graphs", "decode_n2.onnx", "agents", 5), r"decode_n2\.onnx\.agents must be 2"),
+        "count": (
+            set_field("graphs", "decode_n2.onnx", "agents", 5),
+            r"decode_n2\.onnx\.agents must be 2",
+        ),
         "relabelled": (relabel, r"decode_n3\.onnx: .*has shape \['batch', 2"),
         "truncated": (truncate, "cannot load this graph"),
     }  # fmt: skip
