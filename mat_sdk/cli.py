@@ -228,6 +228,11 @@ TRAIN_OPTIONS = {
     "faults": "--fault NAME=zero|remove",
     "ray": "--ray",
 }
+FINETUNE_OPTIONS = {
+    "env": "the ENV_ID argument",
+    "faults": "--fault NAME=zero|remove",
+    "lr": "--lr",
+}
 # What `--resume` may change: how the run is computed, not what is trained.
 RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 
@@ -504,7 +509,7 @@ def finetune(
             lr=lr,
             resume=resume,
             progress_bar=not quiet,
-            **parse_settings(settings),
+            **parse_settings(settings, FINETUNE_OPTIONS),
         )
     result.trainer.close()
     click.echo(

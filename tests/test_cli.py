@@ -192,3 +192,101 @@ def test_ctrl_c_says_what_the_checkpoint_holds_and_how_to_resume(tmp_path, monke
     assert (
         resumed.exit_code == 0 and "resuming" in resumed.output and "at 80 steps" in resumed.output
     )
+
+
+def test_a_bug_keeps_its_traceback_and_asks_for_a_report(monkeypatch):
+    import mat_sdk.envs
+
+    def broken(*args, **kwargs):
+        return {}["no such key"]  # a bug, not the user's mistake
+
+    monkeypatch.setattr(mat_sdk.envs, "make", broken)
+    result = CliRunner().invoke(main, ["rollout", "hopper-2x2"])
+    assert result.exit_code == 1
+    assert "Traceback" in result.output and "KeyError" in result.output
+    assert "a bug in MAT SDK" in result.output and "Please report it" in result.output
+
+    def numpy_error(*args, **kwargs):  # a ValueError, but raised by a library, not by us
+        return np.zeros(2).reshape(3)
+
+    monkeypatch.setattr(mat_sdk.envs, "make", numpy_error)
+    result = CliRunner().invoke(main, ["rollout", "hopper-2x2"])
+    assert result.exit_code == 1 and "Traceback" in result.output and "a bug" in result.output
+
+
+def test_contradicting_options_are_refused_in_one_line(tmp_path):
+    cases = {
+        ("train", "hopper-2x2", "--set", "num_envs=8"): "num_envs has an option of its own; "
+        "use --num-envs",
+        ("train", "hopper-2x2", "--set", "seed=3"): "use --seed",
+        ("train", "hopper-2x2", "--set", "faults={}"): "use --fault",
+        ("train", "hopper-2x2", "--set", "env=walker-6x1"): "use the ENV_ID argument",
+        ("train", "hopper-2x2", "--set", "algo=mappo"): "use --algo",
+        ("finetune", "x.pt", "--set", "lr=0.1"): "lr has an option of its own; use --lr",
+        ("train", "hopper-2x2", "--steps", "-5"): "-5 is not in the range x>=1",
+        ("train", "hopper-2x2", "--set", 'env_options={"bogus": 1}', "--quiet"): (
+            "unknown env option(s) ['bogus'] for hopper-2x2"
+        ),
+        ("train", "hopper-2x2", "--set", "shuffle_agents=maybe"): (
+            "shuffle_agents must be true or false, got 'maybe'"
+        ),
+        ("train", "hopper-2x2", "--seed", str(2**70)): "seed must be an integer in 0..2**31 - 1",
+    }
+    for args, message in cases.items():
+        result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "never")])
+        assert result.exit_code != 0, args
+        assert message in result.output, (args, result.output)
+        assert "Traceback" not in result.output
+    assert not (tmp_path / "never" / "checkpoint.pt").exists()
+
+
+def test_device_auto_trains_on_the_cpu_here(tmp_path):
+    out = tmp_path / "auto"
+    args = ["train", "hopper-2x2", "--steps", "40", "--out", str(out), "--device", "auto"]
+    result = CliRunner().invoke(main, [*args, *TINY_TRAIN])
+    assert result.exit_code == 0, result.output
+    import torch
+
+    from mat_sdk import checkpoint
+
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert checkpoint.load(out / "checkpoint.pt")["rng"]["device"] == expected
+
+
+def test_ray_without_ray_names_the_ray_extra(tmp_path):
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is not None:
+        import pytest
+
+        pytest.skip("ray is installed here")
+    result = CliRunner().invoke(
+        main, ["train", "hopper-2x2", "--ray", "--out", str(tmp_path / "r"), *TINY_TRAIN]
+    )
+    assert result.exit_code == 1 and "pip install 'mat-sdk[ray]'" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_resume_applies_how_to_run_and_refuses_what_to_train(tmp_path):
+    out = tmp_path / "run"
+    runner = CliRunner()
+    first = runner.invoke(
+        main, ["train", "hopper-2x2", "--steps", "40", "--out", str(out), *TINY_TRAIN]
+    )
+    assert first.exit_code == 0, first.output
+    resume = ["train", "hopper-2x2", "--steps", "80", "--out", str(out), "--resume", "--quiet"]
+    for extra, field in (
+        (["--num-envs", "8"], "num_envs=4; got num_envs=8"),
+        (["--set", "lr=0.1"], "lr=5e-05; got lr=0.1"),
+        (["--fault", "knee=zero"], "faults={}; got faults={'knee': 'zero'}"),
+        (["--algo", "mat-dec"], "algo='mat'; got algo='mat-dec'"),
+        (["--seed", "1"], "seed=0; got seed=1"),
+    ):
+        refused = runner.invoke(main, [*resume, *extra])
+        assert refused.exit_code != 0 and field in refused.output, (extra, refused.output)
+        assert "Traceback" not in refused.output
+    other_env = runner.invoke(main, ["train", "walker-2x3", *resume[2:]])
+    assert other_env.exit_code != 0 and "env='hopper-2x2'; got env='walker-2x3'" in other_env.output
+    same = runner.invoke(main, [*resume, "--num-envs", "4", "--workers", "1"])
+    assert same.exit_code == 0, same.output
+    assert "at 40 steps (with workers=1)" in same.output  # applied, and said so

@@ -1,6 +1,7 @@
 """Multi-agent robots: PettingZoo API, decomposition, seeding, faults, bad input."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -469,3 +470,57 @@ def test_workers_exit_when_their_parent_is_killed():
     if orphaned:
         os.kill(worker, signal.SIGKILL)
     assert not orphaned, "an orphaned env worker kept running after its parent was killed"
+
+
+def test_actions_that_are_not_real_numbers_are_refused_naming_the_agent():
+    game = envs.make("coordination-3")
+    for bad, shown in (("1", "'1' (str)"), (True, "True (bool)"), (None, "None (NoneType)")):
+        game.reset(seed=0)
+        with pytest.raises(
+            ValueError, match=re.escape(f"agent_1: action must be a real number, got {shown}")
+        ):
+            game.step({"agent_0": 0, "agent_1": bad, "agent_2": 2})
+    robot = envs.make("cheetah-2x3")
+    robot.reset(seed=0)
+    leg = robot.agents[1]
+    with pytest.raises(ValueError, match=f"{leg}: action must be a real number, got 1j"):
+        robot.step({robot.agents[0]: np.zeros(3), leg: np.array([1j, 0, 0])})
+    with pytest.raises(ValueError, match=f"{leg}: action must be a real number, got 'a'"):
+        robot.step({robot.agents[0]: np.zeros(3), leg: ["a", "b", "c"]})
+    team = envs.make_team("cheetah-2x3")
+    team.reset(seed=0)
+    with pytest.raises(ValueError, match=f"{team.agents[0]}: action must be a real number"):
+        team.step(np.full((2, 3), 0.5 + 0.5j))
+    vec = envs.make_vec("coordination-3", 2)
+    vec.reset(seed=0)
+    actions = np.zeros((2, 3, 1), dtype=object)
+    actions[1, 2, 0] = None
+    with pytest.raises(ValueError, match="env 1, agent_2: action must be a real number, got None"):
+        vec.step(actions)
+
+
+def test_unknown_scenarios_and_options_are_named():
+    with pytest.raises(ValueError, match="MaMuJoCo has no scenario 'Nope' with partition '1x1'"):
+        envs.make_team("mamujoco:Nope-1x1")
+    with pytest.raises(ValueError, match=r"unknown env option\(s\) \['bogus'\] for hopper-2x2"):
+        envs.make_team("hopper-2x2", bogus=1)
+    with pytest.raises(ValueError, match=r"unknown env option\(s\) \['hops'\] for coordination-3"):
+        envs.make_vec("coordination-3", 2, hops=2)
+
+
+def test_a_diverged_simulation_ends_the_episode_with_a_warning():
+    from mat_sdk.envs.base import PhysicsDiverged
+
+    robot = envs.make_team("cheetah-2x3")
+    robot.reset(seed=0)
+    robot._data.qvel[:] = 1e30  # MuJoCo resets such a state silently
+    with pytest.warns(PhysicsDiverged, match="cheetah-2x3: the physics diverged at step 1"):
+        obs, reward, terminated, truncated = robot.step(np.zeros((2, 3)))
+    assert truncated and not terminated and reward == 0.0 and np.isfinite(obs).all()
+
+    scenario = envs.make_team("mamujoco:HalfCheetah-6x1")
+    scenario.reset(seed=0)
+    scenario._env.single_agent_env.unwrapped.data.qvel[:] = np.nan
+    with pytest.warns(PhysicsDiverged, match="HalfCheetah-6x1: the physics diverged"):
+        obs, reward, terminated, truncated = scenario.step(np.zeros((6, 1)))
+    assert truncated and reward == 0.0 and np.isfinite(obs).all()

@@ -43,46 +43,106 @@ TINY = {
 }
 
 
-def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path):
-    with Trainer(
-        "hopper-4x1", "mat", out_dir=tmp_path / "a", shuffle_agents=True, **TINY
-    ) as straight:
+TIMING = ("rollout_s", "update_s", "steps_per_s")
+
+
+def logged_rows(run_dir) -> list[dict]:
+    """metrics.csv without its timing columns, which no two runs share."""
+    from mat_sdk.run_log import read_metrics
+
+    rows = read_metrics(run_dir / "metrics.csv")
+    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
+
+
+def finished_state(trainer: Trainer) -> tuple[dict, dict]:
+    return {k: v.clone() for k, v in trainer.policy.state_dict().items()}, dict(trainer.progress)
+
+
+def assert_same_run(a: tuple[dict, dict], b: tuple[dict, dict], a_dir, b_dir) -> None:
+    """Same weights, same progress and the same logged rows."""
+    (a_weights, a_progress), (b_weights, b_progress) = a, b
+    assert list(a_weights) == list(b_weights)
+    for name, value in a_weights.items():
+        assert torch.equal(value, b_weights[name]), name
+    assert a_progress == b_progress
+    assert logged_rows(a_dir) == logged_rows(b_dir)
+
+
+RESUMABLE = {
+    "in-process hopper": ("hopper-4x1", {}),
+    "MaMuJoCo": ("mamujoco:HalfCheetah-6x1", {}),
+    "env workers": ("hopper-4x1", {"workers": 1}),
+    "update workers": ("hopper-4x1", {"update_workers": 1}),
+    "ONNX rollouts": ("hopper-4x1", {"rollout_backend": "onnx"}),
+    "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
+}
+
+
+@pytest.mark.parametrize(("env_id", "options"), list(RESUMABLE.values()), ids=list(RESUMABLE))
+def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, env_id, options):
+    run = {"shuffle_agents": True, **TINY, **options}
+    with Trainer(env_id, "mat", out_dir=tmp_path / "a", **run) as straight:
         straight.learn(120, progress_bar=False)
-    with Trainer("hopper-4x1", "mat", out_dir=tmp_path / "b", shuffle_agents=True, **TINY) as first:
+        uninterrupted = finished_state(straight)
+    with Trainer(env_id, "mat", out_dir=tmp_path / "b", **run) as first:
         first.learn(60, progress_bar=False)
     with Trainer.load(tmp_path / "b" / "checkpoint.pt", out_dir=tmp_path / "b") as resumed:
         assert resumed.progress == {"steps": 60, "updates": 2}
         resumed.learn(120, progress_bar=False)
-        for (name, a), b in zip(
-            straight.policy.state_dict().items(), resumed.policy.state_dict().values(), strict=True
-        ):
-            assert torch.equal(a, b), name
-    a_rows = (tmp_path / "a" / "metrics.csv").read_text().splitlines()
-    b_rows = (tmp_path / "b" / "metrics.csv").read_text().splitlines()
-    drop_timing = (
-        [line.split(",")[:10] for line in a_rows],
-        [line.split(",")[:10] for line in b_rows],
-    )
-    assert drop_timing[0] == drop_timing[1] and len(a_rows) == 5
+        assert_same_run(uninterrupted, finished_state(resumed), tmp_path / "a", tmp_path / "b")
+    assert len(logged_rows(tmp_path / "a")) == 4
 
 
-KILL_SCRIPT = """
-import sys
+def test_resume_repairs_a_torn_or_header_only_metrics_file(tmp_path):
+    run = {"shuffle_agents": True, **TINY}
+    with Trainer("hopper-4x1", "mat", out_dir=tmp_path / "a", **run) as straight:
+        straight.learn(120, progress_bar=False)
+    with Trainer("hopper-4x1", "mat", out_dir=tmp_path / "b", **run) as first:
+        first.learn(60, progress_bar=False)
+    metrics = tmp_path / "b" / "metrics.csv"
+    metrics.write_text(metrics.read_text() + "90,3,0.1")  # killed mid-row, past the checkpoint
+    with Trainer.load(tmp_path / "b" / "checkpoint.pt", out_dir=tmp_path / "b") as resumed:
+        resumed.learn(120, progress_bar=False)
+    assert logged_rows(tmp_path / "a") == logged_rows(tmp_path / "b")
+
+    header = metrics.read_text().splitlines()[0]
+    with Trainer("hopper-4x1", "mat", out_dir=tmp_path / "c", **run) as fresh:
+        fresh.learn(30, progress_bar=False)
+    (tmp_path / "c" / "metrics.csv").write_text(header + "\n")  # rows lost, header kept
+    for total in (60, 90):  # every later resume works, and writes one header
+        with Trainer.load(tmp_path / "c" / "checkpoint.pt", out_dir=tmp_path / "c") as again:
+            again.learn(total, progress_bar=False)
+    lines = (tmp_path / "c" / "metrics.csv").read_text().splitlines()
+    assert lines[0] == header and lines.count(header) == 1 and len(lines) == 3
+
+
+def test_every_generator_is_saved_with_the_device_it_belongs_to(tmp_path):
+    with Trainer("hopper-4x1", "mat", **TINY) as trainer:
+        rng = trainer.state_payload()["rng"]
+    assert rng["device"] == "cpu" and set(rng) == {"torch", "shuffle", "device"}
+
+
+KILL_OPTIONS = {
+    "num_envs": 2,
+    "rollout_length": 5,
+    "ppo_epochs": 1,
+    "num_minibatches": 1,
+    "checkpoint_every": 1,
+    "env_options": {"episode_limit": 20},
+}
+KILL_SCRIPT = f"""
+import pathlib, sys
 from mat_sdk.trainer import Trainer
-out = sys.argv[1]
-import pathlib
-ckpt = pathlib.Path(out) / "checkpoint.pt"
-options = dict(num_envs=2, rollout_length=5, ppo_epochs=1, num_minibatches=1, checkpoint_every=1,
-               env_options={"episode_limit": 20})
-if ckpt.exists():
-    trainer = Trainer.load(ckpt, out_dir=out)
+out = pathlib.Path(sys.argv[1])
+if (out / "checkpoint.pt").exists():
+    trainer = Trainer.load(out / "checkpoint.pt", out_dir=out)
 else:
-    trainer = Trainer("cheetah-2x3", "mat", out_dir=out, **options)
+    trainer = Trainer("cheetah-2x3", "mat", out_dir=out, **{KILL_OPTIONS!r})
 trainer.learn(10_000_000, progress_bar=False)
 """
 
 
-def test_kill_9_never_leaves_a_corrupt_checkpoint(tmp_path):
+def test_kill_9_leaves_a_checkpoint_that_resumes_as_if_never_killed(tmp_path):
     script = tmp_path / "train.py"
     script.write_text(KILL_SCRIPT)
     out = tmp_path / "run"
@@ -106,6 +166,16 @@ def test_kill_9_never_leaves_a_corrupt_checkpoint(tmp_path):
         progress.append(payload["progress"]["updates"])
         last_write = (out / "checkpoint.pt").stat().st_mtime_ns
     assert progress == sorted(progress) and progress[-1] > progress[0]  # each resume went on
+
+    # Killed four times and resumed each time, the run is the one that was never killed.
+    total = (progress[-1] + 3) * KILL_OPTIONS["num_envs"] * KILL_OPTIONS["rollout_length"]
+    with Trainer.load(out / "checkpoint.pt", out_dir=out) as resumed:
+        resumed.learn(total, progress_bar=False)
+        killed = finished_state(resumed)
+    straight_dir = tmp_path / "straight"
+    with Trainer("cheetah-2x3", "mat", out_dir=straight_dir, **KILL_OPTIONS) as straight:
+        straight.learn(total, progress_bar=False)
+        assert_same_run(finished_state(straight), killed, straight_dir, out)
 
 
 def test_non_finite_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
