@@ -497,6 +497,12 @@ def finetune(
     label = "-".join(f"{k}_{v}" for k, v in fault_map.items()) or (env_id or "same")
     out = Path(out_dir or f"runs/finetune-{label.replace(':', '_')}")
     again = f"mat finetune {checkpoint} --out {out} --steps {steps} --resume"
+    options = parse_settings(settings, FINETUNE_OPTIONS)
+    if resume and (out / CHECKPOINT_NAME).exists():  # the run goes on as it was started
+        asked = {"env": env_id, "faults": fault_map or None, "lr": lr, **options}
+        options = _resume_overrides(
+            out / CHECKPOINT_NAME, {k: v for k, v in asked.items() if v is not None}
+        )
     with resumable(out / CHECKPOINT_NAME, again):
         result = run(
             checkpoint,
@@ -509,7 +515,7 @@ def finetune(
             lr=lr,
             resume=resume,
             progress_bar=not quiet,
-            **parse_settings(settings, FINETUNE_OPTIONS),
+            **options,
         )
     result.trainer.close()
     click.echo(

@@ -59,14 +59,16 @@ def finetune(
 
     `env` defaults to the checkpoint's env; `faults` describe the change; `options` are any
     TrainConfig fields (num_envs, seed, ...). With `resume=True`, continues the run in
-    `out_dir` after an interruption. Writes OUT/finetune.json with both evaluations.
+    `out_dir` after an interruption, as it was started (`options` then may only say how to
+    run: device, workers, update_workers, checkpoint_every). Writes OUT/finetune.json with
+    both evaluations.
     """
     out = Path(out_dir) if out_dir is not None else None
     summary_path = out / SUMMARY_NAME if out else None
     if resume:
         if out is None or not (out / CHECKPOINT_NAME).exists():
             raise FileNotFoundError(f"nothing to resume: {out}/{CHECKPOINT_NAME} does not exist")
-        trainer = Trainer.load(out / CHECKPOINT_NAME, out_dir=out)
+        trainer = Trainer.load(out / CHECKPOINT_NAME, out_dir=out, **options)
         zero_shot = json.loads(summary_path.read_text())["zero_shot"]["returns"]
     else:
         if out is not None and (out / CHECKPOINT_NAME).exists():

@@ -45,6 +45,13 @@ def test_finetune_command_evaluates_trains_and_refuses_what_it_cannot_serve(pret
     resumed = runner.invoke(main, [*args[:-1], "1024", "--out", str(out), "--resume", "--quiet"])
     assert resumed.exit_code == 0, resumed.output
     assert json.loads((out / "finetune.json").read_text())["steps"] == 1024
+    other_lr = runner.invoke(
+        main, [*args[:-1], "1536", "--out", str(out), "--resume", "--lr", "0.1"]
+    )
+    assert (
+        other_lr.exit_code != 0
+        and "as it was trained, with lr=0.0005; got lr=0.1" in other_lr.output
+    )
 
     other_size = runner.invoke(main, ["finetune", str(pretrained), "coordination-4", "--quiet"])
     assert other_size.exit_code == 1 and "observations of size 8" in other_size.output

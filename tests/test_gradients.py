@@ -18,20 +18,28 @@ def shared_rows(trainer: Trainer) -> dict[str, torch.Tensor]:
     return flat
 
 
-def test_a_split_update_trains_like_one_process_eager_or_compiled():
-    def train(**options):
-        with Trainer("hopper-4x1", "mat", **SPLIT, **options) as trainer:
-            start = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
-            trainer.learn(60, progress_bar=False)  # 3 updates of 4 optimizer steps
-            return start, trainer.policy.state_dict()
+def _train_hopper(**options):
+    with Trainer("hopper-4x1", "mat", **SPLIT, **options) as trainer:
+        start = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
+        trainer.learn(60, progress_bar=False)  # 3 updates of 4 optimizer steps
+        return start, trainer.policy.state_dict()
 
-    start, one = train()
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"update_workers": 1},
+        pytest.param({"update_workers": 1, "compile": True}, marks=pytest.mark.slow),
+    ],
+    ids=["eager", "compiled"],
+)
+def test_a_split_update_trains_like_one_process(options):
+    start, one = _train_hopper()
     moved = max(float((one[k] - start[k]).abs().max()) for k in start)
-    assert moved > 1e-4  # the comparisons below mean something
-    for options in ({"update_workers": 1}, {"update_workers": 1, "compile": True}):
-        _, split = train(**options)
-        for name in one:
-            assert torch.allclose(one[name], split[name], rtol=0, atol=1e-6), (options, name)
+    assert moved > 1e-4  # the comparison below means something
+    _, split = _train_hopper(**options)
+    for name in one:
+        assert torch.allclose(one[name], split[name], rtol=0, atol=1e-6), (options, name)
 
 
 def test_update_worker_errors_are_reported_with_their_cause():

@@ -258,7 +258,8 @@ def test_predict_takes_and_gives_pettingzoo_dicts(env_id):
     (humanoid pads arms to the legs' 6), or an int choice."""
     env = envs.make(env_id, seed=0)
     obs, _ = env.reset(seed=0)
-    with Trainer(env_id, "mat", **TINY) as trainer:
+    options = {k: v for k, v in TINY.items() if env_id != "coordination-3" or k != "env_options"}
+    with Trainer(env_id, "mat", **options) as trainer:
         actions = trainer.predict(obs)
         by_array = trainer.predict(np.stack([obs[agent] for agent in env.agents]))
         with pytest.raises(ValueError, match="one entry per agent"):
