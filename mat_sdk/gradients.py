@@ -23,11 +23,11 @@ from torch import Tensor
 from mat_sdk import processes
 from mat_sdk.flat_params import FlatParameters, views
 from mat_sdk.model import Policy
-from mat_sdk.ppo import LossTerms, minibatch_loss
+from mat_sdk.ppo import LossCoefficients, LossTerms, minibatch_loss
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
 if TYPE_CHECKING:
-    from mat_sdk.trainer import TrainConfig
+    from mat_sdk.config import TrainConfig
 
 _TERMS = ("total", "policy", "value", "entropy", "clip_fraction")  # LossTerms' fields
 
@@ -46,10 +46,11 @@ def _loss_function(compile_mode: str | None):
     return torch.compile(minibatch_loss, mode=compile_mode, dynamic=False)
 
 
-def _share_backward(loss, policy, config, flat, rows: Tensor, targets: Tensor, weight: float):
+def _share_backward(loss, policy, coefficients, flat, rows: Tensor, targets: Tensor, weight: float):
     """Backpropagate the loss of one share of a minibatch, weighted by its fraction of the
     rows; its weighted loss terms, stacked as `_TERMS`."""
-    terms = loss(policy, {key: value[rows] for key, value in flat.items()}, targets, config)
+    mb = {key: value[rows] for key, value in flat.items()}
+    terms = loss(policy, mb, targets, coefficients)
     (terms.total * weight).backward()
     return torch.stack([getattr(terms, name).detach() for name in _TERMS]) * weight
 
@@ -60,7 +61,8 @@ class _Share:
 
     def __init__(self, policy: Policy, config: TrainConfig, compile_mode, rank, parts, shared):
         config.configure_torch()
-        self.policy, self.config, self.rank, self.parts = policy, config, rank, parts
+        self.policy, self.rank, self.parts = policy, rank, parts
+        self.coefficients = LossCoefficients.of(config)
         self.loss = _loss_function(compile_mode)
         self.rows, layout, self.grads, self.terms = shared
         params = list(policy.parameters())
@@ -82,7 +84,7 @@ class _Share:
         terms = _share_backward(
             self.loss,
             self.policy,
-            self.config,
+            self.coefficients,
             self.flat,
             self.idx[lo:hi],
             self.targets[lo:hi],
@@ -116,6 +118,7 @@ class MinibatchGradients:
         compile_mode: str | None = None,
     ):
         self.policy, self.params, self.config, self.workers = policy, params, config, workers
+        self.coefficients = LossCoefficients.of(config)
         self.compile_mode = compile_mode
         self._loss = _loss_function(compile_mode)
         self._flat: dict[str, Tensor] = {}
@@ -170,7 +173,7 @@ class MinibatchGradients:
         their normalised returns); returns the minibatch's loss terms."""
         if not self.workers:
             mb = {key: value[idx] for key, value in self._flat.items()}
-            terms = self._loss(self.policy, mb, targets, self.config)
+            terms = self._loss(self.policy, mb, targets, self.coefficients)
             terms.total.backward()
             return terms
         rows = idx.shape[0]
@@ -186,7 +189,7 @@ class MinibatchGradients:
             terms = _share_backward(
                 self._loss,
                 self.policy,
-                self.config,
+                self.coefficients,
                 self._flat,
                 idx[:own],
                 targets[:own],

@@ -12,16 +12,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from mat_sdk.model import Policy, in_agent_order
-
-if TYPE_CHECKING:
-    from mat_sdk.trainer import TrainConfig
 
 
 def gae(
@@ -84,8 +80,23 @@ def ppo_loss(
     return LossTerms(total, policy_loss, value_loss, entropy, clip_fraction)
 
 
+@dataclass(frozen=True)
+class LossCoefficients:
+    """The numbers the PPO loss uses (`TrainConfig` fields of the same names)."""
+
+    clip: float
+    entropy_coef: float
+    value_coef: float
+    huber_delta: float
+
+    @classmethod
+    def of(cls, config) -> LossCoefficients:
+        """The coefficients of anything with these fields, e.g. a `TrainConfig`."""
+        return cls(config.clip, config.entropy_coef, config.value_coef, config.huber_delta)
+
+
 def minibatch_loss(
-    policy: Policy, mb: dict[str, Tensor], targets: Tensor, config: TrainConfig
+    policy: Policy, mb: dict[str, Tensor], targets: Tensor, coefficients: LossCoefficients
 ) -> LossTerms:
     """The PPO loss terms of one minibatch; `targets` are its normalised returns.
 
@@ -103,8 +114,8 @@ def minibatch_loss(
         values,
         mb["values"],
         targets,
-        config.clip,
-        config.entropy_coef,
-        config.value_coef,
-        config.huber_delta,
+        coefficients.clip,
+        coefficients.entropy_coef,
+        coefficients.value_coef,
+        coefficients.huber_delta,
     )

@@ -1,0 +1,142 @@
+"""`TrainConfig`: every training option, with its default and its check.
+
+The defaults are the paper's MA-MuJoCo recipe (docs/ALGORITHM.md); MAPPO gets its own learning
+rates, epochs and clip (`TrainConfig.for_algo`). A bad value is refused when the config is
+made, before any env worker starts, with an error that names the field.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import re
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import torch
+
+ROLLOUT_BACKENDS = ("torch", "onnx")
+
+
+# What each numeric option must be: (fields, test, the rule as the error states it).
+# `None` passes (critic_lr's default: the actor's rate).
+_RULES = (
+    (
+        ("num_envs", "rollout_length", "lr", "critic_lr", "adam_eps", "ppo_epochs",
+         "num_minibatches", "clip", "huber_delta", "max_grad_norm", "n_embd", "n_head",
+         "n_block", "checkpoint_every"),
+        lambda x: x > 0,
+        "> 0",
+    ),
+    (
+        ("workers", "update_workers", "entropy_coef", "value_coef", "torch_threads",
+         "advantage_std_floor"),
+        lambda x: x >= 0,
+        ">= 0",
+    ),
+    (("gamma", "gae_lambda"), lambda x: 0 <= x <= 1, "in [0, 1]"),
+    # env copy i is seeded seed + i, and MuJoCo tasks' numpy streams take seeds below 2**32
+    (("seed",), lambda x: 0 <= x < 2**31, "in 0..2**31 - 1"),
+)  # fmt: skip
+
+
+@dataclass
+class TrainConfig:
+    env: str = "cheetah-6x1"
+    algo: str = "mat"
+    faults: dict[str, str] = field(default_factory=dict)
+    env_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"agent_id": False}
+    seed: int = 0
+    num_envs: int = 40
+    workers: int = 0
+    # Processes that each compute the gradient of a share of every minibatch (CPU): on 2
+    # cores, 1 makes an update step 1.3-1.5x faster (BENCHMARKS.md). 0: this process alone.
+    update_workers: int = 0
+    rollout_length: int = 100
+    lr: float = 5e-5
+    critic_lr: float | None = None  # MAPPO's critic; None: same as lr
+    adam_eps: float = 1e-5
+    ppo_epochs: int = 10
+    num_minibatches: int = 40
+    clip: float = 0.05
+    entropy_coef: float = 0.001
+    value_coef: float = 1.0
+    huber_delta: float = 10.0
+    max_grad_norm: float = 0.5
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    # Advantages are scaled by their batch std, floored at this (reward units). When nearly
+    # every sample earns the same return, that std is only the critic's error, and dividing by
+    # it turns the error into full-size policy steps that drift a solved policy away (the
+    # coordination game: 3 of 8 seeds fell from 1.0 to 2/3). 0: the official 1e-5 epsilon only.
+    advantage_std_floor: float = 0.0
+    n_embd: int = 64
+    n_head: int = 1
+    n_block: int = 1
+    shuffle_agents: bool = False  # the paper shuffles the order; the official code does not
+    normalize_obs: bool = True
+    checkpoint_every: int = 10  # updates
+    device: str = "cpu"
+    compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
+    # "onnx": act in rollouts through ONNX Runtime (mat_sdk.onnx_actor), else torch.
+    rollout_backend: str = "torch"
+    # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
+    # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
+    torch_threads: int = 1
+    # CPU: treat subnormal floats (< 1.2e-38) as zero. Training makes some, and x86 computes
+    # with them far slower: up to 16% of a CPU update step (BENCHMARKS.md). Process-wide.
+    flush_denormal: bool = True
+    # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
+    init_from: str | None = None
+    # Ray: "local" or a cluster address. Rollouts then run on `workers` Ray actors, each
+    # stepping its share of the num_envs copies; the learner (this process) updates.
+    ray: str | None = None
+
+    def __post_init__(self):
+        """Refuse a bad value here, before any env worker starts, naming the field."""
+        integer = {f.name for f in fields(self) if f.type == "int"}
+        for names, ok, rule in _RULES:
+            for name in names:
+                value = getattr(self, name)
+                if value is None:
+                    continue
+                kind = numbers.Integral if name in integer else numbers.Real
+                number = isinstance(value, kind) and not isinstance(value, bool)
+                if not (number and math.isfinite(value) and ok(value)):
+                    what = "an integer" if name in integer else "a number"
+                    raise ValueError(f"{name} must be {what} {rule}, got {value!r}")
+                # numpy scalars become Python numbers: checkpoints load with weights_only
+                setattr(self, name, int(value) if name in integer else float(value))
+        for f in fields(self):
+            value, optional = getattr(self, f.name), f.type.endswith("| None")
+            if value is None and optional:
+                continue
+            if f.type == "bool" and not isinstance(value, bool):
+                raise ValueError(f"{f.name} must be true or false, got {value!r}")
+            if f.type.startswith("dict") and not isinstance(value, dict):
+                raise ValueError(f"{f.name} must be a mapping such as {{...}}, got {value!r}")
+            if f.type.startswith("str") and not isinstance(value, str):
+                raise ValueError(f"{f.name} must be a string, got {value!r}")
+        if self.rollout_backend not in ROLLOUT_BACKENDS:
+            raise ValueError(
+                f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
+                f"got {self.rollout_backend!r}"
+            )
+        if not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device):
+            raise ValueError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
+
+    def configure_torch(self) -> None:
+        """Apply the process-wide torch settings, in the trainer and in its update workers."""
+        if self.torch_threads:
+            torch.set_num_threads(self.torch_threads)
+        if self.flush_denormal:
+            torch.set_flush_denormal(True)
+
+    @classmethod
+    def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:
+        """The paper's per-method hyperparameters, then the caller's overrides."""
+        defaults = {"mappo": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2}}
+        unknown = set(overrides) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown training option(s) {sorted(unknown)}")
+        return cls(**{"algo": algo, **defaults.get(algo, {}), **overrides})
