@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from mat_sdk.model import ModelConfig
+
 ROLLOUT_BACKENDS = ("torch", "onnx")
 
 
@@ -131,6 +133,33 @@ class TrainConfig:
             torch.set_num_threads(self.torch_threads)
         if self.flush_denormal:
             torch.set_flush_denormal(True)
+
+    def make_envs(self, num_envs: int | None = None, workers: int | None = None):
+        """The vectorised envs this config trains on (default: `num_envs` copies stepped by
+        `workers` processes), copy i seeded `seed + i`."""
+        from mat_sdk import envs
+
+        return envs.make_vec(
+            self.env,
+            self.num_envs if num_envs is None else num_envs,
+            workers=self.workers if workers is None else workers,
+            seed=self.seed,
+            faults=self.faults,
+            **self.env_options,
+        )
+
+    def model_config(self, env) -> ModelConfig:
+        """The model this config trains on `env` (its observation, action and team sizes)."""
+        return ModelConfig(
+            obs_dim=env.obs_dim,
+            action_dim=env.n_actions,
+            n_agents=env.n_agents,
+            algo=self.algo,
+            action_type=env.action_type,
+            n_embd=self.n_embd,
+            n_head=self.n_head,
+            n_block=self.n_block,
+        )
 
     @classmethod
     def for_algo(cls, algo: str, **overrides: Any) -> TrainConfig:

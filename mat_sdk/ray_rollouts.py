@@ -29,29 +29,37 @@ _REPLACEMENT_SEED_STRIDE = 7919  # a fresh worker's envs must not replay the dea
 
 
 class RolloutWorker:
-    """A Ray actor: a local trainer without learning, for its share of the env copies."""
+    """A Ray actor: a rollout collector for its share of the env copies."""
 
     def __init__(self, config: dict[str, Any], offset: int, share: int, generation: int):
-        from mat_sdk.trainer import Trainer
+        from mat_sdk.config import TrainConfig
+        from mat_sdk.model import build_policy
+        from mat_sdk.rollout import RolloutCollector
 
-        options = {k: v for k, v in config.items() if k not in ("env", "algo", "ray")}
-        options.update(
-            num_envs=share,
-            workers=0,
-            device="cpu",
-            seed=config["seed"] + offset + _REPLACEMENT_SEED_STRIDE * generation,
+        own = TrainConfig(
+            **{
+                **config,
+                "num_envs": share,
+                "workers": 0,
+                "update_workers": 0,
+                "device": "cpu",
+                "ray": None,
+                "seed": config["seed"] + offset + _REPLACEMENT_SEED_STRIDE * generation,
+            }
         )
-        self.trainer = Trainer(config["env"], config["algo"], **options)
+        own.configure_torch()
+        env = own.make_envs()
+        self.collector = RolloutCollector(env, build_policy(own.model_config(env)), own)
 
     def pid(self) -> int:
         return os.getpid()
 
     def collect(self, weights: dict, obs_norm: dict) -> dict[str, Any]:
-        self.trainer.policy.load_state_dict(weights)
+        self.collector.policy.load_state_dict(weights)
         # As in a local run, the observation statistics follow the observations as they
         # arrive; the learner then folds every worker's raw observations into its own.
-        self.trainer.obs_norm.load_state_dict(obs_norm)
-        return self.trainer._collect(update_norm=True, keep_raw=True)
+        self.collector.obs_norm.load_state_dict(obs_norm)
+        return self.collector.collect(update_norm=True, keep_raw=True)
 
 
 class RayRollouts:

@@ -17,21 +17,20 @@ import time
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import asdict
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from mat_sdk import checkpoint, envs
+from mat_sdk import checkpoint
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.flat_params import FlatParameters
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import ModelConfig, Policy, build_policy, in_agent_order
+from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
-from mat_sdk.ppo import gae
+from mat_sdk.rollout import RolloutCollector
 from mat_sdk.run_log import RunLog
 
 
@@ -87,24 +86,9 @@ class Trainer:
             from mat_sdk.ray_rollouts import RayRollouts
 
             self._remote = RayRollouts(cfg)
-        self.env = envs.make_vec(  # with Ray, one local copy: the env's shapes and names
-            cfg.env,
-            1 if self._remote else cfg.num_envs,
-            workers=0 if self._remote else cfg.workers,
-            seed=cfg.seed,
-            faults=cfg.faults,
-            **cfg.env_options,
-        )
-        self.model_config = ModelConfig(
-            obs_dim=self.env.obs_dim,
-            action_dim=self.env.n_actions,
-            n_agents=self.env.n_agents,
-            algo=algo,
-            action_type=self.env.action_type,
-            n_embd=cfg.n_embd,
-            n_head=cfg.n_head,
-            n_block=cfg.n_block,
-        )
+        # with Ray, one local copy: the env's shapes and names
+        self.env = cfg.make_envs(1, 0) if self._remote else cfg.make_envs()
+        self.model_config = cfg.model_config(self.env)
         self.policy: Policy = build_policy(self.model_config).to(self.device)
         self._build_optimizer()
         if cfg.update_workers and self.device.type != "cpu":
@@ -114,18 +98,10 @@ class Trainer:
         self.gradients = MinibatchGradients(
             self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
         )
-        self._onnx_actor = None
-        if cfg.rollout_backend == "onnx":
-            from mat_sdk.onnx_actor import OnnxActor
-
-            self._onnx_actor = OnnxActor(self.policy)
         self.value_norm = ValueNorm(device=self.device)
-        self.obs_norm = RunningMeanStd(self.env.obs_dim)
-        self.generator = torch.Generator(self.device).manual_seed(cfg.seed)
-        self.shuffle_generator = torch.Generator().manual_seed(cfg.seed + 1)
+        self.collector = RolloutCollector(self.env, self.policy, cfg, self.device)
         self.progress = {"steps": 0, "updates": 0}
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self._next_obs = self.env.reset(seed=cfg.seed)
 
     def _build_optimizer(self) -> None:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`)."""
@@ -153,25 +129,9 @@ class Trainer:
         ]
 
     # ------------------------------------------------------------------ acting
-    def _observe(self, obs: np.ndarray, update: bool = False) -> torch.Tensor:
-        if self.config.normalize_obs:
-            if update:
-                self.obs_norm.update(obs)
-            obs = self.obs_norm.normalize(obs)
-        return torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-
-    def _agent_order(self, batch: int) -> torch.Tensor | None:
-        if not self.config.shuffle_agents:
-            return None
-        keys = torch.rand(batch, self.env.n_agents, generator=self.shuffle_generator)
-        return keys.argsort(dim=1).to(self.device)
-
-    def _act(self, obs: torch.Tensor, order: torch.Tensor | None, deterministic: bool = False):
-        """Act in `order` (agents decode in that sequence); results back in canonical order."""
-        act = self.policy.act if self._onnx_actor is None else self._onnx_actor.act
-        return in_agent_order(
-            order, partial(act, deterministic=deterministic, generator=self.generator), obs
-        )
+    @property
+    def obs_norm(self) -> RunningMeanStd:
+        return self.collector.obs_norm
 
     def predict(self, obs, deterministic: bool = True):
         """Actions for raw observations: an array [n, obs_dim] or [B, n, obs_dim] -> an array
@@ -188,7 +148,7 @@ class Trainer:
                 f"obs must be [n, {self.env.obs_dim}] or [B, n, {self.env.obs_dim}], "
                 f"got {obs.shape}"
             )
-        actions = self._as_loaded().act(batch, deterministic, self.generator)
+        actions = self._as_loaded().act(batch, deterministic, self.collector.generator)
         return actions[0] if single else actions
 
     def _predict_by_agent(self, obs: Mapping, deterministic: bool) -> dict:
@@ -236,7 +196,7 @@ class Trainer:
         try:
             while self.progress["steps"] < total_steps:
                 start = time.perf_counter()
-                batch, finished = self._rollout()
+                batch, finished = self.rollout()
                 rolled = time.perf_counter()
                 losses = self._update(batch)
                 updated = time.perf_counter()
@@ -280,114 +240,20 @@ class Trainer:
         return self
 
     @torch.no_grad()
-    def _rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:
-        """Collect `rollout_length` steps on every env (here or on Ray workers), then GAE."""
+    def rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:
+        """One update's data: `rollout_length` steps on every env (here or on Ray workers),
+        with advantages; and the returns of the episodes that finished."""
         if self._remote is not None:
             trajectories = self._remote.collect(self)
             self.obs_norm.update(trajectories.pop("raw_obs"))
         else:
-            trajectories = self._collect(update_norm=True)
+            trajectories = self.collector.collect(update_norm=True)
         finished = trajectories.pop("finished")
-        return self._advantages(trajectories), finished
-
-    @torch.no_grad()
-    def _collect(self, update_norm: bool, keep_raw: bool = False) -> dict[str, Any]:
-        """`rollout_length` steps of this trainer's envs with the current policy.
-
-        `update_norm`: update the observation statistics as observations arrive.
-        `keep_raw`: also return the raw observations, for a learner to fold into its own
-        statistics (Ray workers collect with a copy of the learner's).
-        """
-        cfg, env, device = self.config, self.env, self.device
-        T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
-        names = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done", "order")
-        buffers: dict[str, list] = {name: [] for name in names}
-        raw = []
-        bootstrap = torch.zeros(T, E, n, 1, device=device)
-        finished: list[float] = []
-        raw.append(self._next_obs)
-        if self._onnx_actor is not None:
-            self._onnx_actor.refresh()
-        obs = self._observe(self._next_obs, update=update_norm)
-        for t in range(T):
-            order = self._agent_order(E)
-            actions, log_probs, values = self._act(obs, order)
-            next_obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
-            for name, value in (
-                ("obs", obs),
-                ("actions", actions),
-                ("log_probs", log_probs),
-                ("values", values),
-                ("order", order),
-            ):
-                buffers[name].append(value)
-            for name, flags in (
-                ("rewards", reward),
-                ("terminated", terminated),
-                ("done", terminated | truncated),
-            ):
-                buffers[name].append(
-                    torch.as_tensor(flags, dtype=torch.float32, device=device).view(E, 1, 1)
-                )
-            if truncated.any():  # bootstrap from the last observation of a time-limited episode
-                final = self._observe(info["final_obs"][truncated])
-                bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
-            finished += info["episode_return"][info["done"]].tolist()
-            self._next_obs = next_obs
-            if t < T - 1:
-                raw.append(next_obs)
-            obs = self._observe(next_obs, update=update_norm and t < T - 1)
-        trajectories: dict[str, Any] = {
-            k: torch.stack(v) for k, v in buffers.items() if k != "order"
-        }
-        if cfg.shuffle_agents:
-            trajectories["order"] = torch.stack(buffers["order"])
-        trajectories["bootstrap"] = bootstrap
-        trajectories["last_values"] = self.policy.values(obs)
-        trajectories["finished"] = finished
-        if keep_raw:
-            trajectories["raw_obs"] = np.concatenate(raw)
-        return trajectories
-
-    def _advantages(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
-        """GAE on the shared reward, per agent, with ValueNorm'd values de-normalised."""
-        cfg = self.config
-        denorm = self.value_norm.denormalize
-        bootstrap, last_values = batch.pop("bootstrap"), batch.pop("last_values")
-        values = denorm(batch["values"])
-        next_values = torch.cat((values[1:], denorm(last_values)[None]))
-        ended = batch["done"].expand_as(next_values) > 0
-        next_values = torch.where(ended, denorm(bootstrap), next_values)
-        advantages = gae(
-            batch["rewards"],
-            values,
-            next_values,
-            batch["terminated"],
-            batch["done"],
-            cfg.gamma,
-            cfg.gae_lambda,
-        )
-        batch["returns"] = advantages + values
-        batch["advantages"] = advantages
-        return batch
-
-    @staticmethod
-    def _as_rows(batch: dict[str, torch.Tensor], std_floor: float = 0.0) -> dict[str, torch.Tensor]:
-        """A rollout's tensors [T, E, ...] as the update's rows [T * E, ...], with the
-        advantages normalised over all of them (their std floored at `std_floor`)."""
-        flat = {
-            k: v.flatten(0, 1)
-            for k, v in batch.items()
-            if k not in ("rewards", "terminated", "done")
-        }
-        advantages = flat["advantages"]
-        scale = advantages.std().clamp_min(std_floor) + 1e-5
-        flat["advantages"] = (advantages - advantages.mean()) / scale
-        return flat
+        return self.collector.advantages(trajectories, self.value_norm), finished
 
     def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         cfg = self.config
-        flat = self._as_rows(batch, cfg.advantage_std_floor)
+        flat = RolloutCollector.rows(batch, cfg.advantage_std_floor)
         self.gradients.share(flat)
         size = flat["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
@@ -398,10 +264,11 @@ class Trainer:
         finite = torch.ones((), dtype=torch.bool, device=self.device)
         count = 0
         for _ in range(cfg.ppo_epochs):
-            permutation = torch.randperm(size, generator=self.shuffle_generator).to(self.device)
+            permutation = torch.randperm(size, generator=self.collector.shuffle_generator)
+            permutation = permutation.to(self.device)
             for k in range(cfg.num_minibatches):
                 idx = permutation[k * minibatch : (k + 1) * minibatch]
-                terms, grad_norm = self._optimizer_step(flat, idx)
+                terms, grad_norm = self.optimizer_step(flat, idx)
                 finite &= torch.isfinite(terms.total)
                 for key, value in (
                     ("policy_loss", terms.policy),
@@ -419,7 +286,7 @@ class Trainer:
             )
         return {key: float(value) / count for key, value in sums.items()}
 
-    def _optimizer_step(self, flat: dict[str, torch.Tensor], idx: torch.Tensor):
+    def optimizer_step(self, flat: dict[str, torch.Tensor], idx: torch.Tensor):
         """One PPO step on the minibatch of rows `idx` of the update's batch `flat` (already
         shared with `self.gradients`); its loss terms and gradient norm before clipping."""
         returns = flat["returns"][idx]
@@ -451,14 +318,14 @@ class Trainer:
             "optimizer": self.params.per_parameter_state(self.optimizer.state_dict()),
             "progress": dict(self.progress),
             "rng": {
-                "torch": self.generator.get_state().cpu(),
-                "shuffle": self.shuffle_generator.get_state(),
+                "torch": self.collector.generator.get_state().cpu(),
+                "shuffle": self.collector.shuffle_generator.get_state(),
                 "device": self.device.type,  # which kind of generator "torch" is
             },
             "obs_norm": self.obs_norm.state_dict(),
             "value_norm": self.value_norm.state_dict(),
             "envs": _to_torch(self.env.get_state()),
-            "next_obs": torch.from_numpy(self._next_obs.copy()),
+            "next_obs": torch.from_numpy(self.collector.next_obs.copy()),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -567,7 +434,7 @@ class Trainer:
         self.progress = dict(payload["progress"])
         saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
         if saved_on == self.device.type:
-            self.generator.set_state(payload["rng"]["torch"])
+            self.collector.generator.set_state(payload["rng"]["torch"])
         else:  # CPU and CUDA generators differ: exact resume needs the same device type
             warnings.warn(
                 f"the checkpoint's sampling generator is a {saved_on} one and this run is on "
@@ -575,10 +442,10 @@ class Trainer:
                 "as it would have on the same device",
                 stacklevel=2,
             )
-            self.generator.manual_seed(self.config.seed + self.progress["updates"])
-        self.shuffle_generator.set_state(payload["rng"]["shuffle"])
+            self.collector.generator.manual_seed(self.config.seed + self.progress["updates"])
+        self.collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
         self.env.set_state(_to_numpy(payload["envs"]))
-        self._next_obs = payload["next_obs"].numpy().copy()
+        self.collector.next_obs = payload["next_obs"].numpy().copy()
 
     def close(self) -> None:
         self.env.close()

@@ -5,6 +5,7 @@ import pytest
 import torch
 from helpers import TINY
 
+from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
 SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
@@ -12,8 +13,8 @@ SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
 
 def shared_rows(trainer: Trainer) -> dict[str, torch.Tensor]:
     """A rollout's batch as rows, shared with the trainer's update workers."""
-    batch, _ = trainer._rollout()
-    flat = trainer._as_rows(batch)
+    batch, _ = trainer.rollout()
+    flat = RolloutCollector.rows(batch)
     trainer.gradients.share(flat)
     return flat
 

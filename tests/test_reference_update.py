@@ -15,7 +15,7 @@ def test_losses_and_gradients_equal_the_official_style_reference(update_workers)
     with Trainer(
         "cheetah-6x1", "mat", num_envs=4, rollout_length=25, update_workers=update_workers
     ) as trainer:
-        batch, _ = trainer._rollout()
+        batch, _ = trainer.rollout()
         mb = {
             k: v.flatten(0, 1)[:50]
             for k, v in batch.items()

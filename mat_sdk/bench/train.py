@@ -18,6 +18,7 @@ from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.processes import usable_cores
+from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
 
@@ -85,13 +86,13 @@ def main(
     )
     twins: dict[str, Trainer] = {}
     try:
-        trainer._rollout()  # warm up the obs normaliser and caches
+        trainer.rollout()  # warm up the obs normaliser and caches
         start = time.perf_counter()
         rollouts = 2
         for _ in range(rollouts):
-            batch, _ = trainer._rollout()
+            batch, _ = trainer.rollout()
         rollout_s = (time.perf_counter() - start) / rollouts
-        flat = trainer._as_rows(batch)
+        flat = RolloutCollector.rows(batch)
         size = flat["obs"].shape[0] // 40
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
         cpu = trainer.device.type == "cpu"
@@ -116,7 +117,7 @@ def main(
             "reference (official style)": _reference_step(trainer, flat),
             "reference, subnormals kept": _keeping_subnormals(_reference_step(trainer, flat)),
         }
-        variants |= {name: partial(twin._optimizer_step, flat) for name, twin in twins.items()}
+        variants |= {name: partial(twin.optimizer_step, flat) for name, twin in twins.items()}
         variants["ours, subnormals kept"] = _keeping_subnormals(variants["ours, subnormals kept"])
         for step in variants.values():  # warm-up (and compilation)
             step(minibatches[0])

@@ -1,0 +1,172 @@
+"""`RolloutCollector`: a policy acting in vectorised envs, and what PPO learns from it.
+
+    collector = RolloutCollector(env, policy, config)
+    trajectories = collector.collect()                   # rollout_length steps of every env
+    batch = collector.advantages(trajectories, value_norm)  # GAE, returns
+    rows = RolloutCollector.rows(batch, config.advantage_std_floor)  # the update's rows
+
+The trainer, the Ray rollout workers, the benchmarks and the tests all collect through this
+one class. It owns what acting needs: the observation normaliser (updated as observations
+arrive), the sampling generator, the agent-order generator, and the envs' next observation.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mat_sdk.config import TrainConfig
+from mat_sdk.envs import VecTeam
+from mat_sdk.model import Policy, in_agent_order
+from mat_sdk.normalization import RunningMeanStd, ValueNorm
+from mat_sdk.ppo import gae
+
+TRAJECTORY_KEYS = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done")
+
+
+class RolloutCollector:
+    """Steps `env` with `policy` for `config.rollout_length` steps per `collect`."""
+
+    def __init__(
+        self,
+        env: VecTeam,
+        policy: Policy,
+        config: TrainConfig,
+        device: torch.device | str = "cpu",
+        seed: int | None = None,
+    ):
+        self.env, self.policy, self.config = env, policy, config
+        self.device = torch.device(device)
+        seed = config.seed if seed is None else seed
+        self.obs_norm = RunningMeanStd(env.obs_dim)
+        self.generator = torch.Generator(self.device).manual_seed(seed)  # action sampling
+        # agent orders here, minibatch permutations in the update: one stream, as saved
+        self.shuffle_generator = torch.Generator().manual_seed(seed + 1)
+        self.onnx_actor = None
+        if config.rollout_backend == "onnx":
+            from mat_sdk.onnx_actor import OnnxActor
+
+            self.onnx_actor = OnnxActor(policy)
+        self.next_obs = env.reset(seed=seed)
+
+    def observe(self, obs: np.ndarray, update: bool = False) -> Tensor:
+        """Raw observations as the policy's input (normalised; `update`: fold them into the
+        running statistics first)."""
+        if self.config.normalize_obs:
+            if update:
+                self.obs_norm.update(obs)
+            obs = self.obs_norm.normalize(obs)
+        return torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+
+    def agent_order(self, batch: int) -> Tensor | None:
+        """A random decoding order per env (`shuffle_agents`), else None: canonical order."""
+        if not self.config.shuffle_agents:
+            return None
+        keys = torch.rand(batch, self.env.n_agents, generator=self.shuffle_generator)
+        return keys.argsort(dim=1).to(self.device)
+
+    def act(self, obs: Tensor, order: Tensor | None, deterministic: bool = False):
+        """Act in `order` (agents decode in that sequence); results back in canonical order."""
+        act = self.policy.act if self.onnx_actor is None else self.onnx_actor.act
+        return in_agent_order(
+            order, partial(act, deterministic=deterministic, generator=self.generator), obs
+        )
+
+    @torch.no_grad()
+    def collect(self, update_norm: bool = True, keep_raw: bool = False) -> dict[str, Any]:
+        """`rollout_length` steps of every env with the current policy: tensors [T, E, ...]
+        (`TRAJECTORY_KEYS`, `order` when shuffling), the values to bootstrap from
+        (`bootstrap` at truncations, `last_values`), and the returns of the episodes that
+        finished (`finished`).
+
+        `update_norm`: update the observation statistics as observations arrive.
+        `keep_raw`: also return the raw observations (`raw_obs`), for a learner to fold into
+        its own statistics (Ray workers collect with a copy of the learner's).
+        """
+        cfg, env, device = self.config, self.env, self.device
+        T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
+        buffers: dict[str, list] = {name: [] for name in (*TRAJECTORY_KEYS, "order")}
+        raw = [self.next_obs]
+        bootstrap = torch.zeros(T, E, n, 1, device=device)
+        finished: list[float] = []
+        if self.onnx_actor is not None:
+            self.onnx_actor.refresh()
+        obs = self.observe(self.next_obs, update=update_norm)
+        for t in range(T):
+            order = self.agent_order(E)
+            actions, log_probs, values = self.act(obs, order)
+            next_obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
+            for name, value in (
+                ("obs", obs),
+                ("actions", actions),
+                ("log_probs", log_probs),
+                ("values", values),
+                ("order", order),
+            ):
+                buffers[name].append(value)
+            for name, flags in (
+                ("rewards", reward),
+                ("terminated", terminated),
+                ("done", terminated | truncated),
+            ):
+                buffers[name].append(
+                    torch.as_tensor(flags, dtype=torch.float32, device=device).view(E, 1, 1)
+                )
+            if truncated.any():  # bootstrap from the last observation of a time-limited episode
+                final = self.observe(info["final_obs"][truncated])
+                bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
+            finished += info["episode_return"][info["done"]].tolist()
+            self.next_obs = next_obs
+            if t < T - 1:
+                raw.append(next_obs)
+            obs = self.observe(next_obs, update=update_norm and t < T - 1)
+        trajectories: dict[str, Any] = {k: torch.stack(buffers[k]) for k in TRAJECTORY_KEYS}
+        if cfg.shuffle_agents:
+            trajectories["order"] = torch.stack(buffers["order"])
+        trajectories["bootstrap"] = bootstrap
+        trajectories["last_values"] = self.policy.values(obs)
+        trajectories["finished"] = finished
+        if keep_raw:
+            trajectories["raw_obs"] = np.concatenate(raw)
+        return trajectories
+
+    def advantages(self, batch: dict[str, Any], value_norm: ValueNorm) -> dict[str, Tensor]:
+        """GAE on the shared reward, per agent, with ValueNorm'd values de-normalised; adds
+        `advantages` and `returns` to the trajectories (`finished` must be taken out)."""
+        cfg = self.config
+        denorm = value_norm.denormalize
+        bootstrap, last_values = batch.pop("bootstrap"), batch.pop("last_values")
+        values = denorm(batch["values"])
+        next_values = torch.cat((values[1:], denorm(last_values)[None]))
+        ended = batch["done"].expand_as(next_values) > 0
+        next_values = torch.where(ended, denorm(bootstrap), next_values)
+        advantages = gae(
+            batch["rewards"],
+            values,
+            next_values,
+            batch["terminated"],
+            batch["done"],
+            cfg.gamma,
+            cfg.gae_lambda,
+        )
+        batch["returns"] = advantages + values
+        batch["advantages"] = advantages
+        return batch
+
+    @staticmethod
+    def rows(batch: dict[str, Tensor], std_floor: float = 0.0) -> dict[str, Tensor]:
+        """A rollout's tensors [T, E, ...] as the update's rows [T * E, ...], with the
+        advantages normalised over all of them (their std floored at `std_floor`)."""
+        flat = {
+            k: v.flatten(0, 1)
+            for k, v in batch.items()
+            if k not in ("rewards", "terminated", "done")
+        }
+        advantages = flat["advantages"]
+        scale = advantages.std().clamp_min(std_floor) + 1e-5
+        flat["advantages"] = (advantages - advantages.mean()) / scale
+        return flat
