@@ -23,8 +23,6 @@ import numpy as np
 import onnx
 import torch
 
-from mat_export.decode_graph import OPSET as DECODE_OPSET
-from mat_export.decode_graph import build_decode
 from mat_export.graphs import (
     DecentralisedStepGraph,
     EncoderGraph,
@@ -34,6 +32,8 @@ from mat_export.graphs import (
     cache_names,
 )
 from mat_sdk import checkpoint
+from mat_sdk.control_graph import OPSET as DECODE_OPSET
+from mat_sdk.control_graph import build_decode
 from mat_sdk.model import MAT, ModelConfig, build_policy
 from mat_sdk.normalization import ValueNorm
 

@@ -2,7 +2,7 @@
 
 Batched acting is where ONNX Runtime beats eager torch most (BENCHMARKS.md, B = 40, n = 6:
 ~1.3 ms vs ~9.9 ms per control step). Before each rollout the control-step graph is rebuilt
-from the current weights (`mat_export.decode_graph`, no `torch.onnx` tracing: ~0.1 s), with
+from the current weights (`mat_sdk.control_graph`, no `torch.onnx` tracing: ~0.1 s), with
 identity normalisers, because the trainer feeds normalised observations and stores
 normalised values. Noise comes from the trainer's torch generator, so a seed still fixes the
 run; the log-probs of the sampled actions come from the returned distribution through the
@@ -27,7 +27,7 @@ class OnnxActor:
 
     def refresh(self) -> None:
         """Rebuild the graph from the policy's current weights."""
-        from mat_export.decode_graph import build_decode
+        from mat_sdk.control_graph import build_decode
 
         dim = self.policy.cfg.obs_dim
         graph = build_decode(

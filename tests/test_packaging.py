@@ -41,4 +41,4 @@ def test_normal_install_imports_all_three_packages(tmp_path):
     )
     files = result.stdout.split()
     assert len(files) == 3 and all(f.startswith(str(target)) for f in files), result.stdout
-    assert (target / "mat_export" / "decode_graph.py").exists()
+    assert (target / "mat_sdk" / "control_graph.py").exists()

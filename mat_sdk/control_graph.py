@@ -18,6 +18,8 @@ About 20 kernels per agent remain. The steps run in ONNX `Loop`s (any agent coun
 written out for one count (`agents=N`: `decode_nN.onnx`, no loop machinery). Only standard
 ONNX ops. BENCHMARKS.md has the measurements.
 
+The exporter (`mat_export`) writes it into bundles and ONNX rollouts (`mat_sdk.onnx_actor`)
+act through it; both sit above this module, so it lives beside the model it is built from.
 The exporter checks this graph against the torch policy on several agent counts and refuses
 the bundle when they differ, so it cannot drift from `mat_sdk.model`.
 """
