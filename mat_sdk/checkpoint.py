@@ -10,9 +10,12 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+import warnings
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 FORMAT = "mat-checkpoint"
@@ -27,6 +30,88 @@ NORMALISERS = {
 
 class CheckpointError(ValueError):
     """The file is missing, not a MAT checkpoint, or of a version this SDK cannot read."""
+
+
+def training_payload(trainer) -> dict[str, Any]:
+    """A training run as plain containers and tensors: what `restore_training` puts back.
+
+    `trainer` is a `mat_sdk.trainer.Trainer` (its config, model config, envs, policy, flat
+    parameters and optimizer, progress, rollout collector and value normaliser)."""
+    env, collector = trainer.env, trainer.collector
+    return {
+        "config": {
+            "train": asdict(trainer.config),
+            "model": trainer.model_config.to_dict(),
+            "env": {
+                "id": trainer.config.env,
+                "agents": list(env.agents),
+                "obs_dim": env.obs_dim,
+                "action_type": env.action_type,
+                "action_dim": env.n_actions,
+                "act_dim": env.act_dim,
+                "action_low": -1.0,
+                "action_high": 1.0,
+            },
+        },
+        "model": {k: v.cpu() for k, v in trainer.policy.state_dict().items()},
+        "optimizer": trainer.params.per_parameter_state(trainer.optimizer.state_dict()),
+        "progress": dict(trainer.progress),
+        "rng": {
+            "torch": collector.generator.get_state().cpu(),
+            "shuffle": collector.shuffle_generator.get_state(),
+            "device": collector.device.type,  # which kind of generator "torch" is
+        },
+        "obs_norm": collector.obs_norm.state_dict(),
+        "value_norm": trainer.value_norm.state_dict(),
+        "envs": to_tensors(env.get_state()),
+        "next_obs": torch.from_numpy(collector.next_obs.copy()),
+    }
+
+
+def restore_training(trainer, payload: dict[str, Any]) -> None:
+    """Put a `training_payload` back into a trainer built from its config."""
+    collector = trainer.collector
+    load_weights(trainer.policy, payload["model"], "the checkpoint")
+    collector.obs_norm.load_state_dict(payload["obs_norm"])
+    trainer.value_norm.load_state_dict(payload["value_norm"])
+    trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
+    trainer.progress = dict(payload["progress"])
+    saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
+    if saved_on == collector.device.type:
+        collector.generator.set_state(payload["rng"]["torch"])
+    else:  # CPU and CUDA generators differ: exact resume needs the same device type
+        warnings.warn(
+            f"the checkpoint's sampling generator is a {saved_on} one and this run is on "
+            f"{collector.device.type}: sampling is reseeded, so the run goes on but not "
+            "exactly as it would have on the same device",
+            stacklevel=3,
+        )
+        collector.generator.manual_seed(trainer.config.seed + trainer.progress["updates"])
+    collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
+    trainer.env.set_state(to_arrays(payload["envs"]))
+    collector.next_obs = payload["next_obs"].numpy().copy()
+
+
+def to_tensors(value: Any) -> Any:
+    """numpy inside env states -> tensors, so the checkpoint loads with weights_only=True."""
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(value.copy())
+    if isinstance(value, dict):
+        return {k: to_tensors(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(to_tensors(v) for v in value)
+    return value
+
+
+def to_arrays(value: Any) -> Any:
+    """`to_tensors` undone."""
+    if isinstance(value, torch.Tensor):
+        return value.numpy()
+    if isinstance(value, dict):
+        return {k: to_arrays(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(to_arrays(v) for v in value)
+    return value
 
 
 def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import asdict
 from pathlib import Path
@@ -36,27 +35,6 @@ from mat_sdk.run_log import RunLog
 
 class TrainingDiverged(RuntimeError):
     """A loss became NaN or inf; the last good checkpoint is left as it was."""
-
-
-def _to_torch(value: Any) -> Any:
-    """numpy inside env states -> tensors, so the checkpoint loads with weights_only=True."""
-    if isinstance(value, np.ndarray):
-        return torch.from_numpy(value.copy())
-    if isinstance(value, dict):
-        return {k: _to_torch(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return type(value)(_to_torch(v) for v in value)
-    return value
-
-
-def _to_numpy(value: Any) -> Any:
-    if isinstance(value, torch.Tensor):
-        return value.numpy()
-    if isinstance(value, dict):
-        return {k: _to_numpy(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return type(value)(_to_numpy(v) for v in value)
-    return value
 
 
 class Trainer:
@@ -299,34 +277,8 @@ class Trainer:
 
     # ------------------------------------------------------------ checkpoints
     def state_payload(self) -> dict[str, Any]:
-        return {
-            "config": {
-                "train": asdict(self.config),
-                "model": self.model_config.to_dict(),
-                "env": {
-                    "id": self.config.env,
-                    "agents": list(self.env.agents),
-                    "obs_dim": self.env.obs_dim,
-                    "action_type": self.env.action_type,
-                    "action_dim": self.env.n_actions,
-                    "act_dim": self.env.act_dim,
-                    "action_low": -1.0,
-                    "action_high": 1.0,
-                },
-            },
-            "model": {k: v.cpu() for k, v in self.policy.state_dict().items()},
-            "optimizer": self.params.per_parameter_state(self.optimizer.state_dict()),
-            "progress": dict(self.progress),
-            "rng": {
-                "torch": self.collector.generator.get_state().cpu(),
-                "shuffle": self.collector.shuffle_generator.get_state(),
-                "device": self.device.type,  # which kind of generator "torch" is
-            },
-            "obs_norm": self.obs_norm.state_dict(),
-            "value_norm": self.value_norm.state_dict(),
-            "envs": _to_torch(self.env.get_state()),
-            "next_obs": torch.from_numpy(self.collector.next_obs.copy()),
-        }
+        """Everything `Trainer.load` needs to continue exactly (`checkpoint.training_payload`)."""
+        return checkpoint.training_payload(self)
 
     def save(self, path: str | Path) -> Path:
         """Write a checkpoint atomically (temp file + rename)."""
@@ -427,25 +379,7 @@ class Trainer:
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""
-        checkpoint.load_weights(self.policy, payload["model"], "the checkpoint")
-        self.obs_norm.load_state_dict(payload["obs_norm"])
-        self.value_norm.load_state_dict(payload["value_norm"])
-        self.optimizer.load_state_dict(self.params.flat_state(payload["optimizer"]))
-        self.progress = dict(payload["progress"])
-        saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
-        if saved_on == self.device.type:
-            self.collector.generator.set_state(payload["rng"]["torch"])
-        else:  # CPU and CUDA generators differ: exact resume needs the same device type
-            warnings.warn(
-                f"the checkpoint's sampling generator is a {saved_on} one and this run is on "
-                f"{self.device.type}: sampling is reseeded, so the run goes on but not exactly "
-                "as it would have on the same device",
-                stacklevel=2,
-            )
-            self.collector.generator.manual_seed(self.config.seed + self.progress["updates"])
-        self.collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
-        self.env.set_state(_to_numpy(payload["envs"]))
-        self.collector.next_obs = payload["next_obs"].numpy().copy()
+        checkpoint.restore_training(self, payload)
 
     def close(self) -> None:
         self.env.close()
