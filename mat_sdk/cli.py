@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from mat_sdk.config import TrainConfig
+
 OUR_PACKAGES = ("mat_sdk", "mat_export", "mat_runtime")
 # What our code raises on purpose for a user's mistake; raised from anywhere else, it is a bug.
 EXPECTED = (ValueError, OSError, RuntimeError)
@@ -104,6 +106,22 @@ def parse_faults(values: tuple[str, ...]) -> dict[str, str]:
     return faults
 
 
+def fault_option(purpose: str) -> Callable:
+    """`--fault NAME=zero|remove`, repeatable (see `parse_faults`)."""
+    return click.option(
+        "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help=purpose
+    )
+
+
+def set_option(purpose: str = "Any TrainConfig field, e.g. lr=3e-4.") -> Callable:
+    """`--set KEY=VALUE`, repeatable (see `parse_settings`)."""
+    return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help=purpose)
+
+
+def quiet_option() -> Callable:
+    return click.option("--quiet", is_flag=True, help="No progress bar.")
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mat-sdk")
 def main() -> None:
@@ -148,9 +166,7 @@ def envs() -> None:
 @click.argument("env_id")
 @click.option("--steps", default=1000, show_default=True, help="Env steps to run.")
 @click.option("--seed", default=0, show_default=True)
-@click.option(
-    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="Break a joint or agent."
-)
+@fault_option("Break a joint or agent.")
 @user_errors
 def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None:
     """Roll out a random team on ENV_ID and print the episode returns.
@@ -239,29 +255,31 @@ RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 
 @main.command()
 @click.argument("env_id")
-@click.option("--algo", default="mat", show_default=True, help="mat | mat-dec | mappo")
+@click.option("--algo", default=TrainConfig.algo, show_default=True, help="mat | mat-dec | mappo")
 @click.option(
     "--steps", default=1_000_000, show_default=True, type=click.IntRange(min=1),
     help="Total env steps.",
 )  # fmt: skip
-@click.option("--num-envs", default=40, show_default=True, help="Env copies per rollout.")
+@click.option(
+    "--num-envs", default=TrainConfig.num_envs, show_default=True, help="Env copies per rollout."
+)
 @click.option(
     "--workers",
-    default=0,
+    default=TrainConfig.workers,
     show_default=True,
     help="Env worker processes (0: in-process). This process steps a share too when it has a "
     "core left, so on C cores use at most C - 1.",
 )
 @click.option(
     "--update-workers",
-    default=0,
+    default=TrainConfig.update_workers,
     show_default=True,
     help="Processes that each compute the gradient of a share of every minibatch (CPU; the "
     "same math). On C cores use at most C - 1; 1 on 2 cores: 1.3-1.5x faster updates, "
     "~2x the official-style update with --set compile=true.",
 )
-@click.option("--seed", default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True, help="cpu | cuda | auto")
+@click.option("--seed", default=TrainConfig.seed, show_default=True)
+@click.option("--device", default=TrainConfig.device, show_default=True, help="cpu | cuda | auto")
 @click.option(
     "--out",
     "out_dir",
@@ -271,16 +289,8 @@ RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 @click.option(
     "--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped."
 )
-@click.option(
-    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="Train on a changed robot."
-)
-@click.option(
-    "--set",
-    "settings",
-    multiple=True,
-    metavar="KEY=VALUE",
-    help="Any TrainConfig field, e.g. lr=3e-4.",
-)
+@fault_option("Train on a changed robot.")
+@set_option()
 @click.option(
     "--ray",
     "ray_address",
@@ -290,7 +300,7 @@ RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
     metavar="[ADDRESS]",
     help="Rollouts on --workers Ray actors: a local Ray instance, or ADDRESS (e.g. auto).",
 )
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@quiet_option()
 @user_errors
 def train(
     env_id,
@@ -400,9 +410,7 @@ def _resume_overrides(ckpt: Path, given: dict) -> dict:
 @click.argument("checkpoint", type=click.Path())
 @click.option("--episodes", default=10, show_default=True)
 @click.option("--env", "env_id", help="Another env the policy can serve [the checkpoint's].")
-@click.option(
-    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="Break a joint or agent."
-)
+@fault_option("Break a joint or agent.")
 @click.option(
     "--stochastic", is_flag=True, help="Sample actions instead of the deterministic mean/argmax."
 )
@@ -442,9 +450,7 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> N
 @main.command()
 @click.argument("checkpoint", type=click.Path())
 @click.argument("env_id", required=False)
-@click.option(
-    "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help="The change to adapt to."
-)
+@fault_option("The change to adapt to.")
 @click.option("--steps", default=20_000, show_default=True, help="Fine-tuning env steps.")
 @click.option(
     "--out", "out_dir", type=click.Path(file_okay=False), help="Run directory [runs/finetune-…]."
@@ -455,10 +461,8 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> N
 )
 @click.option("--keep-optimizer", is_flag=True, help="Keep the checkpoint's Adam moments.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted fine-tuning run in OUT.")
-@click.option(
-    "--set", "settings", multiple=True, metavar="KEY=VALUE", help="Any TrainConfig field."
-)
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@set_option()
+@quiet_option()
 @user_errors
 def finetune(
     checkpoint,
@@ -598,7 +602,7 @@ def bench_runtime(seconds: float, agents: str) -> None:
 @click.option(
     "--workers", default="1,2", show_default=True, help="Worker / actor counts to compare."
 )
-@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Recipe changes.")
+@set_option("Recipe changes (TrainConfig fields).")
 @user_errors
 def bench_scaling(env_id: str, updates: int, workers: str, settings: tuple[str, ...]) -> None:
     """Env-steps/s with local worker processes vs Ray actors (needs mat-sdk[ray]).

@@ -11,11 +11,10 @@ import math
 import numbers
 import re
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-
-from mat_sdk.model import ModelConfig
+if TYPE_CHECKING:  # torch and the model load only when used: the CLI reads defaults here
+    from mat_sdk.model import ModelConfig
 
 ROLLOUT_BACKENDS = ("torch", "onnx")
 
@@ -129,6 +128,8 @@ class TrainConfig:
 
     def configure_torch(self) -> None:
         """Apply the process-wide torch settings, in the trainer and in its update workers."""
+        import torch
+
         if self.torch_threads:
             torch.set_num_threads(self.torch_threads)
         if self.flush_denormal:
@@ -150,6 +151,8 @@ class TrainConfig:
 
     def model_config(self, env) -> ModelConfig:
         """The model this config trains on `env` (its observation, action and team sizes)."""
+        from mat_sdk.model import ModelConfig
+
         return ModelConfig(
             obs_dim=env.obs_dim,
             action_dim=env.n_actions,
