@@ -441,29 +441,17 @@ def torch_decode(policy, x: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Te
     """The torch policy sampling with given noise, as `decode.onnx` does: (actions, params)."""
     discrete = policy.cfg.action_type == "discrete"
 
-    def sample(params):
+    def sample(i: int | None, params: torch.Tensor) -> torch.Tensor:
+        agent_noise = noise if i is None else noise[:, i : i + 1]
         if discrete:
-            return (params + noise_i).argmax(-1, keepdim=True).float()
-        return params + policy.std() * noise_i
+            return (params + agent_noise).argmax(-1, keepdim=True).float()
+        return params + policy.std() * agent_noise
 
     with torch.no_grad():
         if not isinstance(policy, MAT):
-            noise_i = noise
             params = policy.actor(x)
-            return sample(params), params
-        rep, _ = policy.encoder(x)
-        token = torch.zeros(x.shape[0], 1, policy.decoder.token_dim)
-        if discrete:
-            token[:, 0, 0] = 1.0
-        past, actions, all_params = None, [], []
-        for i in range(x.shape[1]):
-            params, past = policy.decode_step(token, rep[:, i : i + 1], past)
-            noise_i = noise[:, i : i + 1]
-            action = sample(params)
-            actions.append(action)
-            all_params.append(params)
-            token = policy.action_token(action)
-        return torch.cat(actions, 1), torch.cat(all_params, 1)
+            return sample(None, params), params
+        return policy.decode(policy.encoder(x)[0], sample)
 
 
 def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | None) -> dict:
@@ -481,9 +469,7 @@ def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | 
     head_dim = cfg.n_embd // cfg.n_head
     names = cache_names(cfg.n_block)
     past = {p: np.zeros((batch, cfg.n_head, 0, head_dim), np.float32) for p, _ in names}
-    token = np.zeros((batch, 1, policy.decoder.token_dim), np.float32)
-    if discrete:
-        token[:, 0, 0] = 1.0
+    token = policy.start_token(batch).numpy()
     all_params, all_actions = [], []
     for i in range(n):
         feed = {"rep": rep[:, i : i + 1], "token": token, **past}
@@ -496,9 +482,5 @@ def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | 
         chosen = action if forced_actions is None else forced_actions[:, i : i + 1]
         all_params.append(params)
         all_actions.append(action)
-        if discrete:
-            token = np.zeros_like(token)
-            token[np.arange(batch), 0, 1 + chosen[:, 0, 0].astype(int)] = 1.0
-        else:
-            token = chosen.astype(np.float32)
+        token = policy.action_token(torch.from_numpy(chosen.astype(np.float32))).numpy()
     return {"params": np.concatenate(all_params, 1), "actions": np.concatenate(all_actions, 1)}

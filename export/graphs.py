@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from mat_sdk.model import MAT, Policy
+from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, Policy
 
 OBS_CLIP = 10.0
 
@@ -90,7 +90,7 @@ class MATStepGraph(nn.Module):
 
     def _head(self, params: Tensor, mask: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
         if self.discrete:
-            return (params.masked_fill(mask[0] == 0, -1e10),)
+            return (params.masked_fill(mask[0] == 0, UNAVAILABLE_LOGIT),)
         return params, self.policy.std().expand_as(params)
 
 
@@ -105,5 +105,5 @@ class DecentralisedStepGraph(nn.Module):
     def forward(self, obs: Tensor, *mask: Tensor):
         params = self.policy.actor(obs)
         if self.discrete:
-            return (params.masked_fill(mask[0] == 0, -1e10),)
+            return (params.masked_fill(mask[0] == 0, UNAVAILABLE_LOGIT),)
         return params, self.policy.std().expand_as(params)

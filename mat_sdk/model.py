@@ -326,25 +326,26 @@ class MAT(Policy):
     def values(self, obs: Tensor) -> Tensor:
         return self.encoder(obs)[1]
 
+    def start_token(self, batch: int, device=None) -> Tensor:
+        """The first agent's token [B, 1, token]: zeros (continuous) or the one-hot start slot
+        [1, 0, ...] (discrete), as in the official code."""
+        token = torch.zeros(batch, 1, self.decoder.token_dim, device=device)
+        if self.cfg.action_type == "discrete":
+            token[:, 0, 0] = 1.0
+        return token
+
     def shift_tokens(self, actions: Tensor) -> Tensor:
         """The decoder's input: a start token, then each agent's predecessor's action."""
-        batch, n, _ = actions.shape
-        tokens = torch.zeros(batch, n, self.decoder.token_dim, device=actions.device)
-        if self.cfg.action_type == "discrete":
-            tokens[:, 0, 0] = 1.0
-            tokens[:, 1:, 1:] = F.one_hot(actions[:, :-1, 0].long(), self.cfg.action_dim).to(
-                tokens.dtype
-            )
-        else:
-            tokens[:, 1:] = actions[:, :-1]
-        return tokens
+        batch = actions.shape[0]
+        start = self.start_token(batch, actions.device)
+        return torch.cat((start, self.action_token(actions[:, :-1])), dim=1)
 
     def action_params(self, obs: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         rep, values = self.encoder(obs)
         return self.decoder(self.shift_tokens(actions), rep), values
 
     def action_token(self, action: Tensor) -> Tensor:
-        """Token [B, 1, token] that an agent's action [B, 1, A or 1] becomes for the next agent."""
+        """Tokens [B, L, token] that agents' actions [B, L, A or 1] become for the next agents."""
         if self.cfg.action_type == "discrete":
             return F.pad(
                 F.one_hot(action[..., 0].long(), self.cfg.action_dim).to(torch.float32), (1, 0)
@@ -355,24 +356,34 @@ class MAT(Policy):
         """KV-cached single-agent decoder step: (mean or logits [B, 1, A], present caches)."""
         return self.decoder.step(token, rep, past)
 
+    def decode(self, rep: Tensor, choose) -> tuple[Tensor, Tensor]:
+        """The autoregressive loop, KV-cached: each agent's action parameters from the
+        actions chosen before it. `choose(i, params)` picks agent i's action [B, 1, A or 1]
+        from its parameters [B, 1, A]; returns all actions and parameters [B, n, ...]."""
+        token, past = self.start_token(rep.shape[0], rep.device), None
+        actions, all_params = [], []
+        for i in range(rep.shape[1]):
+            params, past = self.decode_step(token, rep[:, i : i + 1], past)
+            action = choose(i, params)
+            actions.append(action)
+            all_params.append(params)
+            token = self.action_token(action)
+        return torch.cat(actions, 1), torch.cat(all_params, 1)
+
     @torch.no_grad()
     def act(self, obs, available=None, deterministic=False, generator=None):
         rep, values = self.encoder(obs)
-        batch, n, _ = obs.shape
-        token = obs.new_zeros(batch, 1, self.decoder.token_dim)
-        if self.cfg.action_type == "discrete":
-            token[:, 0, 0] = 1.0
-        std, past = self.std(), None
-        actions, log_probs = [], []
-        for i in range(n):
-            params, past = self.decode_step(token, rep[:, i : i + 1], past)
+        std, log_probs = self.std(), []
+
+        def sample(i: int, params: Tensor) -> Tensor:
             mask = None if available is None else available[:, i : i + 1]
             dist = self.dist.make(params, std, mask)
             action = self.dist.sample(dist, deterministic, generator)
-            actions.append(action)
             log_probs.append(self.dist.log_prob_entropy(dist, action)[0])
-            token = self.action_token(action)
-        return torch.cat(actions, 1), torch.cat(log_probs, 1), values
+            return action
+
+        actions, _ = self.decode(rep, sample)
+        return actions, torch.cat(log_probs, 1), values
 
 
 def actor_mlp(obs_dim: int, n_embd: int, out: int) -> nn.Sequential:
