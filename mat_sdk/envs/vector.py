@@ -26,7 +26,6 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "actions": (("n", "act"), np.float64),
     "obs": (("n", "obs"), np.float32),
     "final_obs": (("n", "obs"), np.float32),
-    "state": (("state",), np.float32),
     "reward": ((), np.float64),
     "terminated": ((), np.bool_),
     "truncated": ((), np.bool_),
@@ -83,10 +82,6 @@ class _EnvSlice:
             else:
                 b.episode_return[i], b.episode_length[i] = np.nan, 0
             b.obs[i] = obs
-
-    def state(self) -> None:
-        for k, team in enumerate(self.teams):
-            self.buffers.state[self.start + k] = team.state()
 
     def get_state(self) -> list[dict]:
         return [
@@ -164,7 +159,6 @@ class VecTeam:
             "n": self.n_agents,
             "obs": self.obs_dim,
             "act": self.act_dim,
-            "state": self.state_dim,
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
@@ -215,10 +209,6 @@ class VecTeam:
             "done": done,
         }
         return b.obs.copy(), b.reward.copy(), b.terminated.copy(), b.truncated.copy(), info
-
-    def state(self) -> np.ndarray:
-        self._run("state", [()] * (self.workers + 1))
-        return self._buffers.state.copy()
 
     def get_state(self) -> list[dict]:
         """Per copy: its full simulation state and episode progress (picklable numpy)."""
