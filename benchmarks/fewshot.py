@@ -1,4 +1,4 @@
-"""The paper's few-shot protocol on a HalfCheetah (issue 7; results in docs/FEWSHOT.md).
+"""The paper's few-shot protocol on a HalfCheetah (results in docs/FEWSHOT.md).
 
 For each of the six joints disabled ("zero"): the pre-trained policy's zero-shot return,
 then fine-tuning from it and MAT from scratch (on the checkpoint's env, with its recipe) with

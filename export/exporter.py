@@ -1,4 +1,4 @@
-"""Checkpoint -> ONNX bundle (DESIGN §5), verified against torch before anything is written.
+"""Checkpoint -> ONNX bundle (docs/ARCHITECTURE.md), verified against torch before anything is written.
 
     mat_export.export("runs/cheetah/checkpoint.pt", "cheetah_onnx")
 
@@ -52,7 +52,7 @@ class ExportError(ValueError):
 def export(
     checkpoint_path: str | Path, out_dir: str | Path, force: bool = False, agent_counts=AGENT_COUNTS
 ) -> dict[str, Any]:
-    """Write the bundle (DESIGN §5) and return its manifest.
+    """Write the bundle and return its manifest.
 
     `encoder.onnx`, `decoder_step.onnx`, `decode.onnx` (any agent count) and, for MAT,
     `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),

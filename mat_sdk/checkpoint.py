@@ -1,4 +1,4 @@
-"""The checkpoint file (DESIGN §4): one `torch.save` of plain containers, written atomically.
+"""The checkpoint file: one `torch.save` of plain containers, written atomically.
 
 `{"format": "mat-checkpoint", "version": 1, "config", "model", "optimizer", "progress",
 "rng", "obs_norm", "value_norm", "envs"}`. Loaded with `weights_only=True`: a checkpoint can

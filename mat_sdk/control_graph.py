@@ -43,7 +43,7 @@ def _streamed(cfg) -> bool:
     """Whether the decoder's attention scores the cached action stream itself (one head) or
     per-head keys and values (several heads). Streaming saves the key/value projections but
     gives every head the stream's full width: at 4 heads about even with per-head caches, at
-    8 heads and 128 wide 33-46 % slower (BENCHMARKS.md, fifth session)."""
+    8 heads and 128 wide 33-46 % slower (BENCHMARKS.md, 2026-11-23, 4662891)."""
     return cfg.n_head == 1
 
 

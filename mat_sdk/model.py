@@ -3,7 +3,7 @@
 MAT: an encoder reads every agent's observation (unmasked self-attention, a value per
 agent); a decoder emits actions one agent at a time, each conditioned on the actions already
 chosen. Layer layout, initialisation and the policy's std follow the official code
-(`PAPER_NOTES.md`): post-LN blocks; the decoder's second attention takes its query from the
+(docs/ALGORITHM.md): post-LN blocks; the decoder's second attention takes its query from the
 encoder representation and its keys/values from the causal action stream.
 
 Rollouts decode with a KV cache (`decode_step`): each decoder block keeps two caches, one per

@@ -6,7 +6,7 @@
     trainer = Trainer.load("cheetah.pt")          # resumes exactly where it stopped
     actions = trainer.predict(obs)                # obs [n, obs_dim] or [B, n, obs_dim]
 
-The defaults are the paper's MA-MuJoCo recipe (`PAPER_NOTES.md`); MAPPO gets its own
+The defaults are the paper's MA-MuJoCo recipe (docs/ALGORITHM.md); MAPPO gets its own
 (lr 5e-6 actor / 5e-3 critic, 5 epochs, clip 0.2) unless you set them.
 """
 

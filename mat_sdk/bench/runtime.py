@@ -1,4 +1,4 @@
-"""One control step, four ways, side by side (`mat bench runtime`; issue 6).
+"""One control step, four ways, side by side (`mat bench runtime`).
 
 (a) runtime: `mat_runtime.Policy.act` (one `decode.onnx` call, input checks included);
 (b) official: the official code's `get_actions` (`bench.reference.OfficialStyleMAT.act`):

@@ -1,5 +1,5 @@
 """Rollout scaling: env-steps/s of whole updates with local or Ray rollout workers
-(`mat bench scaling`; issue 8).
+(`mat bench scaling`).
 
 Each variant trains a fresh `Trainer` for a few updates of the chosen recipe and reports the
 mean over the updates after the first (which includes start-up): env-steps/s, and the
