@@ -1,4 +1,4 @@
-"""Checkpoint -> ONNX bundle (docs/ARCHITECTURE.md), verified against torch before anything is written.
+"""Checkpoint -> ONNX bundle, verified against torch before anything is written.
 
     mat_export.export("runs/cheetah/checkpoint.pt", "cheetah_onnx")
 
