@@ -50,8 +50,8 @@ class TrainConfig:
     seed: int = 0
     num_envs: int = 40
     workers: int = 0
-    # Processes that each compute the gradient of a share of every minibatch (CPU): on 2
-    # cores, 1 makes an update step 1.3-1.5x faster (BENCHMARKS.md). 0: this process alone.
+    # Processes that each compute the gradient of a share of every minibatch (CPU), using
+    # cores a rollout leaves idle (BENCHMARKS.md has the speed-ups). 0: this process alone.
     update_workers: int = 0
     rollout_length: int = 100
     lr: float = 5e-5
@@ -78,14 +78,14 @@ class TrainConfig:
     normalize_obs: bool = True
     checkpoint_every: int = 10  # updates
     device: str = "cpu"
-    compile: bool = False  # torch.compile the loss: ~20% faster updates, ~1 min to compile
+    compile: bool = False  # torch.compile the loss: faster updates after a slow compile
     # "onnx": act in rollouts through ONNX Runtime (mat_sdk.onnx_actor), else torch.
     rollout_backend: str = "torch"
-    # Small MAT ops are dispatch-bound: one thread measured 1.6x faster than two on 2 cores
-    # (BENCHMARKS.md), and it leaves the other cores to env workers. 0: torch's default.
+    # Small MAT ops are dispatch-bound, so one thread beats several (BENCHMARKS.md) and
+    # leaves the other cores to env and update workers. 0: torch's default.
     torch_threads: int = 1
     # CPU: treat subnormal floats (< 1.2e-38) as zero. Training makes some, and x86 computes
-    # with them far slower: up to 16% of a CPU update step (BENCHMARKS.md). Process-wide.
+    # with them far slower (BENCHMARKS.md). Process-wide.
     flush_denormal: bool = True
     # Fine-tuning provenance (Trainer.from_pretrained): the checkpoint the weights came from.
     init_from: str | None = None

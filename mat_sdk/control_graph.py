@@ -4,8 +4,8 @@
     actions (, clipped_actions), mean + std (continuous) or logits (discrete), values,
     obs_check
 
-Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not arithmetic
-(~0.5-1 µs per ONNX Runtime kernel; the torch-exported step graph ran ~89 kernels per agent).
+Why a hand-built graph: at B = 1 a control step is bound by kernel dispatch, not arithmetic,
+and the torch-exported step graph ran several times more kernels per agent than this one.
 Written directly in ONNX it is laid out for that regime: an agent's activations are [B, 1, C],
 the layout in which ONNX Runtime fuses bias + residual + LayerNorm and bias + GELU at load;
 q/k/v projections are fused; with one head (the paper's size) attention scores the cached
@@ -42,8 +42,8 @@ LN_EPS = 1e-5  # torch.nn.LayerNorm's default
 def _streamed(cfg) -> bool:
     """Whether the decoder's attention scores the cached action stream itself (one head) or
     per-head keys and values (several heads). Streaming saves the key/value projections but
-    gives every head the stream's full width: at 4 heads about even with per-head caches, at
-    8 heads and 128 wide 33-46 % slower (BENCHMARKS.md, 2026-11-23, 4662891)."""
+    gives every head the stream's full width, which loses to per-head caches as heads grow
+    (BENCHMARKS.md, 2026-11-23, 4662891)."""
     return cfg.n_head == 1
 
 
@@ -140,7 +140,7 @@ def build_decode(
 
     Besides the actions (as sampled: what the next agent is conditioned on) it returns what
     the runtime would otherwise compute with numpy around the call, where each ufunc costs
-    more than a kernel does here (n = 6: 176 -> 168 µs per `Policy.act`, BENCHMARKS.md):
+    more than a kernel does here (BENCHMARKS.md):
     `clipped_actions` (continuous; clipped to `action_bounds`) and `obs_check`, the sum of
     all observations, finite unless one is NaN or inf (or the sum overflows, which the
     runtime double-checks).
@@ -261,8 +261,8 @@ def _decoder(
     """mat_sdk.model.Decoder run agent by agent with caches: an ONNX `Loop` over any number of
     agents, or (`agents` given) the steps written out one after another for that count.
 
-    The steps are cut to the kernels that depend on the actions already chosen (each costs
-    ~1 µs at B = 1): per-agent tensors stay [B, 1, C], the layout ONNX Runtime fuses bias,
+    The steps are cut to the kernels that depend on the actions already chosen (each is a
+    dispatch at B = 1): per-agent tensors stay [B, 1, C], the layout ONNX Runtime fuses bias,
     residual and LayerNorm in (`SkipLayerNormalization`, `BiasGelu`) and `Attention` takes
     without reshapes; the next agent's normalised token comes straight from this agent's
     head (continuous: head, sampling shift and action encoder as one matrix; discrete: a
@@ -390,8 +390,8 @@ def _loop(
 ):
     """The agent steps for any agent count n, in one ONNX `Loop` per entry of LOOP_STEPS,
     whose body has that many agent steps written out: n = 8 a + b runs b single steps, then a
-    bodies of 8 (fewer loop iterations: 1,585 vs 1,625 µs at n = 64; bodies of 16 or tiers
-    of 1, 4, 16 measured no better); a loop may run zero times. -> [B, n, ..] outputs."""
+    bodies of 8 (fewer loop iterations; bodies of 16 or tiers of 1, 4, 16 measured no
+    better, BENCHMARKS.md); a loop may run zero times. -> [B, n, ..] outputs."""
     packed = g.op("Concat", *per_agent.values(), axis=-1)
     left = g.op("Shape", "obs", start=1, end=2)  # agents not yet given to a loop
     trips, starts = {}, {}
@@ -567,7 +567,7 @@ def _stream_attention(g: GraphBuilder, queries, stream, attn, past: list[str], h
     width C (the stream serves as both; scale already folded into the queries). The grown
     stream [B, agents so far, C] is the one cache, appended to `present`: one copy per step
     where `Attention`'s own past/present would keep (and copy) it twice, as keys and as values
-    (n = 64: 1,545 vs 1,595 µs; n = 256: 7.1 vs 7.7 ms)."""
+    (measured faster at many agents, BENCHMARKS.md)."""
     full = g.op("Concat", past[0], stream, axis=1)
     mixed = g.op("Attention", queries, full, full, scale=1.0, q_num_heads=heads, kv_num_heads=1)
     present.append(full)

@@ -1,11 +1,11 @@
 """A policy's parameters laid out in one buffer per optimizer group, gradients likewise.
 
-MAT has ~65 small parameter tensors. Torch's clip and Adam touch each of them, a few µs
-apiece: ~0.6 ms of a ~10 ms CPU update step, and all of it on the critical path when the
-gradient is split over processes (`mat_sdk.gradients`). With every parameter a view into
+MAT has ~65 small parameter tensors. Torch's clip and Adam launch kernels for each of them,
+a real share of a CPU update step, and all of it on the critical path when the gradient is
+split over processes (`mat_sdk.gradients`). With every parameter a view into
 one flat buffer per group, and every `.grad` a view into a flat gradient buffer that
 autograd accumulates into in place, zeroing, clipping and the optimizer step each run one
-kernel per group (~0.12 ms in all; BENCHMARKS.md). The modules still see ordinary
+kernel per group (BENCHMARKS.md). The modules still see ordinary
 parameters, so state dicts, export and `torch.compile` are unchanged.
 
 Checkpoints keep the optimizer state per parameter (torch's layout for the unflattened

@@ -1,8 +1,8 @@
 """Acting for rollouts through ONNX Runtime (`TrainConfig.rollout_backend = "onnx"`).
 
-Batched acting is where ONNX Runtime beats eager torch most (BENCHMARKS.md, B = 40, n = 6:
-~1.3 ms vs ~9.9 ms per control step). Before each rollout the control-step graph is rebuilt
-from the current weights (`mat_sdk.control_graph`, no `torch.onnx` tracing: ~0.1 s), with
+Batched acting is where ONNX Runtime beats eager torch most (BENCHMARKS.md). Before each
+rollout the control-step graph is rebuilt from the current weights (`mat_sdk.control_graph`,
+no `torch.onnx` tracing, so it is quick), with
 identity normalisers, because the trainer feeds normalised observations and stores
 normalised values. Noise comes from the trainer's torch generator, so a seed still fixes the
 run; the log-probs of the sampled actions come from the returned distribution through the

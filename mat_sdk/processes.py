@@ -35,8 +35,8 @@ class Handshake:
 
     A semaphore's release and acquire also order the shared-memory writes around them, on
     every architecture. A waiting side polls its semaphore for `spin_seconds` before it
-    sleeps: waking a sleeping process costs ~20 µs each way plus a cold core, ~15 % of a
-    20-copy cheetah step (BENCHMARKS.md). Spin only when every process has a core of its
+    sleeps: waking a sleeping process costs a wake-up each way plus a cold core, a visible
+    share of a vector step (BENCHMARKS.md). Spin only when every process has a core of its
     own, or the spinning steals the work.
     """
 

@@ -11,7 +11,7 @@ its node lost) is replaced by a fresh one, which collects the dead worker's shar
 current update again: no update is lost or shortened.
 
 Workers act with the torch policy, or through ONNX Runtime with
-`rollout_backend="onnx"` (`mat_sdk.onnx_actor`; ~2x faster rollouts here).
+`rollout_backend="onnx"` (`mat_sdk.onnx_actor`; faster batched acting).
 """
 
 from __future__ import annotations

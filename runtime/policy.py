@@ -44,8 +44,8 @@ GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly
 _CONSTANT_CACHE = 32  # read-only filled buffers (zero noise, all-available masks) kept
 _BOUND_CACHE = 32  # bound [B, n] shapes kept per thread
 # ONNX Runtime's fused Add + LayerNorm kernel (SkipLayerNormalization) is faster at B = 1
-# (~7 % of a step) but slower with many rows (~28 % at B = 40, this repo's VM), so batches of
-# BATCH_ROWS or more go to sessions built without that fusion.
+# but slower with many rows (BENCHMARKS.md), so batches of BATCH_ROWS or more go to
+# sessions built without that fusion.
 BATCH_ROWS = 8
 BATCH_DISABLED_OPTIMIZERS = ["SkipLayerNormFusion"]
 
@@ -58,7 +58,7 @@ def session(
 
     Memory reuse is off: ONNX Runtime then gives every intermediate tensor its own buffer
     instead of planning which can share one. The tensors here are a few KB, and at B = 1 a
-    step runs 5-10 % faster without the planner's bookkeeping (BENCHMARKS.md)."""
+    step runs faster without the planner's bookkeeping (BENCHMARKS.md)."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
@@ -316,8 +316,7 @@ class Policy:
 class _Bound:
     """A session's inputs and outputs bound once to fixed float32 buffers of one shape: a call
     copies its inputs in and the caller copies out what it keeps, so ONNX Runtime neither
-    converts nor allocates them per call (~10 µs of a ~200 µs step). One per thread: buffers
-    are state."""
+    converts nor allocates them per call. One per thread: buffers are state."""
 
     def __init__(self, session: ort.InferenceSession, shapes: dict[str, tuple[int, ...]]):
         self.session, self.binding = session, session.io_binding()
