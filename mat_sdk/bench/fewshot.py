@@ -6,8 +6,8 @@ the same env steps, each evaluated after budgets given as fractions of the pre-t
 steps, or of `--of` steps (the paper: 1e7). One run per method passes through every
 budget, so the smaller budgets are nested in the larger.
 
-    python benchmarks/fewshot.py runs/curve-mat/checkpoint.pt --budgets 0.01 0.05
-    python benchmarks/fewshot.py runs/hc6x1-mat/checkpoint.pt --budgets 0.01 --of 10000000 \
+    python -m mat_sdk.bench.fewshot runs/curve-mat/checkpoint.pt --budgets 0.01 0.05
+    python -m mat_sdk.bench.fewshot runs/hc6x1-mat/checkpoint.pt --budgets 0.01 --of 10000000 \
         --out docs/fewshot-mamujoco
 
 Rows are appended to OUT/fewshot.csv as they finish; re-running skips finished rows, so an

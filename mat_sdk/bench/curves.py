@@ -1,6 +1,6 @@
 """Plot several training runs' returns in one figure.
 
-    python benchmarks/learning_curves.py runs/curve-mat runs/curve-mappo \
+    python -m mat_sdk.bench.curves runs/curve-mat runs/curve-mappo \
         --out docs/cheetah-6x1_mat_vs_mappo.png --title "cheetah-6x1, 2e6 steps" \
         --reference "paper: MAT at 1e7=9000"
 """
@@ -10,7 +10,8 @@ from pathlib import Path
 
 from mat_sdk.run_log import METRICS_NAME, plot_runs
 
-if __name__ == "__main__":
+
+def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="run directories (with metrics.csv)")
     parser.add_argument("--out", type=Path, required=True, help="PNG to write")
@@ -31,3 +32,7 @@ if __name__ == "__main__":
             parser.error(f"--reference {item!r}: expected LABEL=RETURN")
         references[label] = float(value)
     print(plot_runs(runs, args.out, args.title, references))
+
+
+if __name__ == "__main__":
+    main()
