@@ -68,7 +68,7 @@ class Trainer:
         self.env = cfg.make_envs(1, 0) if self._remote else cfg.make_envs()
         self.model_config = cfg.model_config(self.env)
         self.policy: Policy = build_policy(self.model_config).to(self.device)
-        self._build_optimizer()
+        self.build_optimizer()
         if cfg.update_workers and self.device.type != "cpu":
             raise ValueError(
                 "update_workers splits CPU updates over processes; on a GPU use update_workers=0"
@@ -81,7 +81,7 @@ class Trainer:
         self.progress = {"steps": 0, "updates": 0}
         self.out_dir = Path(out_dir) if out_dir is not None else None
 
-    def _build_optimizer(self) -> None:
+    def build_optimizer(self) -> None:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`)."""
         groups = self._param_groups()
         self.params = FlatParameters([group.pop("params") for group in groups])

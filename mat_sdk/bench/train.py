@@ -63,7 +63,7 @@ def _variant(
     levers (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
     twin = copy.copy(trainer)
     twin.policy = copy.deepcopy(trainer.policy)
-    twin._build_optimizer()
+    twin.build_optimizer()
     twin.value_norm = ValueNorm(device=trainer.device)
     twin.gradients = MinibatchGradients(
         twin.policy, twin.params, trainer.config, update_workers, compile_mode
