@@ -191,11 +191,11 @@ def _check_env(payload: dict, cfg: ModelConfig) -> None:
             f"the checkpoint was trained on env {env_id!r}, which cannot be made here ({error}); "
             "no bundle written"
         ) from None
-    if (team.obs_dim, team.n_actions) != (cfg.obs_dim, cfg.action_dim):
+    if (team.obs_dim, team.action_size) != (cfg.obs_dim, cfg.action_size):
         raise ExportError(
             f"env {env_id} gives observations of size {team.obs_dim} and actions of size "
-            f"{team.n_actions}, but the checkpoint's model takes {cfg.obs_dim} and "
-            f"{cfg.action_dim}; no bundle written"
+            f"{team.action_size}, but the checkpoint's model takes {cfg.obs_dim} and "
+            f"{cfg.action_size}; no bundle written"
         )
 
 
@@ -243,7 +243,9 @@ def _export_graphs(policy, normalizer, value_scale, directory: Path) -> dict[str
     discrete = cfg.action_type == "discrete"
     head = ["logits"] if discrete else ["mean", "std"]
     mask = (
-        [torch.ones(batch, 1 if isinstance(policy, MAT) else n, cfg.action_dim)] if discrete else []
+        [torch.ones(batch, 1 if isinstance(policy, MAT) else n, cfg.action_size)]
+        if discrete
+        else []
     )
     if isinstance(policy, MAT):
         head_dim, n_cache = cfg.n_embd // cfg.n_head, 4 * cfg.n_block
@@ -318,7 +320,7 @@ def _finish_graph(path: Path, manifest: dict) -> None:
 
 def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
     env, train = payload["config"]["env"], payload["config"]["train"]
-    token = cfg.action_dim + 1 if cfg.action_type == "discrete" else cfg.action_dim
+    token = cfg.action_size + 1 if cfg.action_type == "discrete" else cfg.action_size
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -327,7 +329,7 @@ def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
         "obs_dim": cfg.obs_dim,
         "action": {
             "type": cfg.action_type,
-            "size": cfg.action_dim,
+            "size": cfg.action_size,
             "low": env.get("action_low", -1.0),
             "high": env.get("action_high", 1.0),
             "token_size": token,
@@ -388,7 +390,7 @@ def measure_parity(
             np.abs(forced["params"] - params.numpy()).max(),
             np.abs(free["params"] - params.numpy()).max(),
         ]
-        noise = rng.standard_normal((2, n, cfg.action_dim)).astype(np.float32)
+        noise = rng.standard_normal((2, n, cfg.action_size)).astype(np.float32)
         if cfg.action_type == "discrete":
             noise = -np.log(-np.log(rng.uniform(1e-9, 1.0, noise.shape))).astype(np.float32)
         sampled, sampled_params = torch_decode(policy, x, torch.from_numpy(noise))
@@ -462,7 +464,7 @@ def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | 
     if not isinstance(policy, MAT):
         feed = {"rep": rep}
         if discrete:
-            feed["available"] = np.ones((batch, n, cfg.action_dim), np.float32)
+            feed["available"] = np.ones((batch, n, cfg.action_size), np.float32)
         params = step.run(None, feed)[0]
         actions = params.argmax(-1)[..., None].astype(np.float32) if discrete else params
         return {"params": params, "actions": actions}
@@ -474,7 +476,7 @@ def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | 
     for i in range(n):
         feed = {"rep": rep[:, i : i + 1], "token": token, **past}
         if discrete:
-            feed["available"] = np.ones((batch, 1, cfg.action_dim), np.float32)
+            feed["available"] = np.ones((batch, 1, cfg.action_size), np.float32)
         out = step.run(None, feed)
         params = out[0]
         past = {p: value for (p, _), value in zip(names, out[-len(names) :], strict=True)}

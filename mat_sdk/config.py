@@ -155,7 +155,7 @@ class TrainConfig:
 
         return ModelConfig(
             obs_dim=env.obs_dim,
-            action_dim=env.n_actions,
+            action_size=env.action_size,
             n_agents=env.n_agents,
             algo=self.algo,
             action_type=env.action_type,

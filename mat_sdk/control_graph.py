@@ -151,10 +151,10 @@ def build_decode(
     n = agents or "agents"
     inputs = [
         _value("obs", ["batch", n, cfg.obs_dim]),
-        _value("noise", ["batch", n, cfg.action_dim]),
+        _value("noise", ["batch", n, cfg.action_size]),
     ]
     if discrete:
-        inputs.append(_value("available", ["batch", n, cfg.action_dim]))
+        inputs.append(_value("available", ["batch", n, cfg.action_size]))
     x = g.op("Mul", g.op("Sub", "obs", g.const(obs_mean)), g.const(obs_scale))
     if obs_clip is not None:
         x = g.op("Clip", x, g.const(-obs_clip), g.const(obs_clip))
@@ -181,11 +181,11 @@ def build_decode(
     for name in ["actions", *(h for h in head if h != "std")]:
         g.op("Identity", params[name], outputs=[name])
     g.op("ReduceSum", "obs", keepdims=0, outputs=["obs_check"])
-    clipped = {} if discrete else {"clipped_actions": cfg.action_dim}
+    clipped = {} if discrete else {"clipped_actions": cfg.action_size}
     widths = {
-        "actions": 1 if discrete else cfg.action_dim,
+        "actions": 1 if discrete else cfg.action_size,
         **clipped,
-        **dict.fromkeys(head, cfg.action_dim),
+        **dict.fromkeys(head, cfg.action_size),
         "values": 1,
     }
     outputs = [_value(name, ["batch", n, w]) for name, w in widths.items()]
@@ -279,7 +279,7 @@ def _decoder(
         widths[f"query2.{b}"] = weight.shape[1]
     embed = w["decoder.action_encoder.0.weight"].T  # [token, C]
     if discrete:
-        per_agent["shift"], widths["shift"] = shift, cfg.action_dim
+        per_agent["shift"], widths["shift"] = shift, cfg.action_size
     else:  # what the next agent's token adds to hidden @ (head.3 -> action encoder)
         token_bias = w["decoder.head.3.bias"] @ embed + w["decoder.action_encoder.0.bias"]
         per_agent["token"] = g.dense(shift, embed, token_bias, "token")
@@ -342,7 +342,7 @@ class _AgentStep:
     def outputs(self) -> dict[str, int]:
         """What every step emits for the whole team: name -> width (0: one choice per row)."""
         if self.discrete:
-            return {"chosen": 0, "logits": self.cfg.action_dim}
+            return {"chosen": 0, "logits": self.cfg.action_size}
         return {"hidden": self.cfg.n_embd}
 
     def __call__(

@@ -58,10 +58,10 @@ def check_compatible(policy: Policy, vec: Any, env_id: str) -> None:
             f"size {cfg.obs_dim}; the robots differ (or one-hot agent ids are on in one and off in "
             "the other)"
         )
-    if vec.action_type != cfg.action_type or vec.n_actions != cfg.action_dim:
+    if vec.action_type != cfg.action_type or vec.action_size != cfg.action_size:
         raise ValueError(
-            f"{env_id} has {vec.action_type} actions of size {vec.n_actions}, the policy "
-            f"{cfg.action_type} of size {cfg.action_dim}"
+            f"{env_id} has {vec.action_type} actions of size {vec.action_size}, the policy "
+            f"{cfg.action_type} of size {cfg.action_size}"
         )
     if cfg.algo == "mappo" and vec.n_agents != cfg.n_agents:
         raise ValueError(

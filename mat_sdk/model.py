@@ -43,10 +43,13 @@ def in_agent_order(order: Tensor | None, fn, *inputs: Tensor) -> tuple:
     return tuple(permute_agents(r, inverse) for r in results)
 
 
+CHECKPOINT_KEYS = {"action_size": "action_dim"}  # field -> its key in a checkpoint
+
+
 @dataclass
 class ModelConfig:
     obs_dim: int
-    action_dim: int  # continuous: size of the action vector; discrete: number of choices
+    action_size: int  # continuous: size of the action vector; discrete: number of choices
     n_agents: int  # agents seen in training (MAPPO's critic is tied to it; MAT is not)
     algo: str = "mat"
     action_type: str = "continuous"
@@ -55,7 +58,7 @@ class ModelConfig:
     n_block: int = 1
 
     def __post_init__(self):
-        for name in ("obs_dim", "action_dim", "n_agents", "n_embd", "n_head", "n_block"):
+        for name in ("obs_dim", "action_size", "n_agents", "n_embd", "n_head", "n_block"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"model {name} must be an integer >= 1, got {value!r}")
@@ -67,13 +70,17 @@ class ModelConfig:
             raise ValueError(f"n_embd {self.n_embd} must be divisible by n_head {self.n_head}")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """As a checkpoint stores it (`CHECKPOINT_KEYS`: the names checkpoints have always
+        used, so files written before a rename still load)."""
+        return {CHECKPOINT_KEYS.get(k, k): v for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, values: dict) -> ModelConfig:
         """From `to_dict`'s output (a checkpoint's), refusing a missing or unknown field."""
         if not isinstance(values, dict):
             raise ValueError(f"the model config must be a mapping, got {type(values).__name__}")
+        stored = {stored: name for name, stored in CHECKPOINT_KEYS.items()}
+        values = {stored.get(k, k): v for k, v in values.items()}
         names = {f.name for f in fields(cls)}
         required = {f.name for f in fields(cls) if f.default is MISSING}
         unknown, missing = sorted(set(values) - names), sorted(required - set(values))
@@ -210,14 +217,14 @@ class Decoder(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         discrete = cfg.action_type == "discrete"
-        self.token_dim = cfg.action_dim + 1 if discrete else cfg.action_dim
+        self.token_dim = cfg.action_size + 1 if discrete else cfg.action_size
         self.action_encoder = nn.Sequential(
             init_linear(nn.Linear(self.token_dim, cfg.n_embd, bias=not discrete), activated=True),
             nn.GELU(),
         )
         self.ln = nn.LayerNorm(cfg.n_embd)
         self.blocks = nn.ModuleList(DecodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block))
-        self.head = head(cfg.n_embd, cfg.action_dim)
+        self.head = head(cfg.n_embd, cfg.action_size)
 
     def forward(self, tokens: Tensor, rep: Tensor) -> Tensor:
         x = self.ln(self.action_encoder(tokens))
@@ -285,7 +292,7 @@ class Policy(nn.Module):
         self.cfg = cfg
         self.dist = ActionDistribution(cfg.action_type)
         if cfg.action_type == "continuous":
-            self.log_std = nn.Parameter(torch.ones(cfg.action_dim))
+            self.log_std = nn.Parameter(torch.ones(cfg.action_size))
 
     def std(self) -> Tensor | None:
         """Official parametrisation: sigmoid(log_std) * 0.5 (initially ~0.37)."""
@@ -348,7 +355,7 @@ class MAT(Policy):
         """Tokens [B, L, token] that agents' actions [B, L, A or 1] become for the next agents."""
         if self.cfg.action_type == "discrete":
             return F.pad(
-                F.one_hot(action[..., 0].long(), self.cfg.action_dim).to(torch.float32), (1, 0)
+                F.one_hot(action[..., 0].long(), self.cfg.action_size).to(torch.float32), (1, 0)
             )
         return action
 
@@ -422,7 +429,7 @@ class MATDec(Decentralised):
     def __init__(self, cfg: ModelConfig):
         super().__init__(cfg)
         self.encoder = Encoder(cfg)
-        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_dim)
+        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_size)
 
     def actor(self, obs: Tensor) -> Tensor:
         return self.mlp(obs)
@@ -436,7 +443,7 @@ class MAPPO(Decentralised):
 
     def __init__(self, cfg: ModelConfig):
         super().__init__(cfg)
-        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_dim)
+        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_size)
         self.critic = actor_mlp(cfg.obs_dim * (cfg.n_agents + 1), cfg.n_embd, 1)
 
     def actor(self, obs: Tensor) -> Tensor:

@@ -37,7 +37,7 @@ class OnnxActor:
 
     def act(self, obs: torch.Tensor, generator: torch.Generator, deterministic: bool = False):
         """Like `Policy.act` on normalised obs [B, n, D]: actions, log-probs, values."""
-        shape = (*obs.shape[:2], self.policy.cfg.action_dim)
+        shape = (*obs.shape[:2], self.policy.cfg.action_size)
         noise = torch.zeros(shape) if deterministic else self.policy.dist.noise(shape, generator)
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}
         if self.discrete:

@@ -113,7 +113,7 @@ class Trainer:
 
     def predict(self, obs, deterministic: bool = True):
         """Actions for raw observations: an array [n, obs_dim] or [B, n, obs_dim] -> an array
-        [.., n, act_dim] (discrete: [.., n, 1] choice indices); or a PettingZoo obs dict
+        [.., n, action_width] (discrete: [.., n, 1] choice indices); or a PettingZoo obs dict
         {agent: obs} -> an action dict ready for `env.step` (each agent's own action size;
         discrete: an int)."""
         if isinstance(obs, Mapping):
@@ -138,7 +138,7 @@ class Trainer:
         actions = self.predict(np.stack([np.asarray(obs[a]) for a in agents]), deterministic)
         if self.env.action_type == "discrete":
             return {a: int(actions[i, 0]) for i, a in enumerate(agents)}
-        return {a: actions[i, : self.env.act_dims[i]] for i, a in enumerate(agents)}
+        return {a: actions[i, : self.env.action_widths[i]] for i, a in enumerate(agents)}
 
     # ---------------------------------------------------------------- training
     def learn(

@@ -2,6 +2,7 @@
 
 import copy
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -84,3 +85,23 @@ def test_a_pickle_that_would_run_code_is_refused_with_the_reason(tmp_path):
         checkpoint.load(evil)
     message = str(refused.value)
     assert "weights_only" not in message and "\n" not in message
+
+
+WRITTEN_BEFORE = sorted((Path(__file__).parent / "data").glob("*-5510455.pt"))
+
+
+@pytest.mark.parametrize("path", WRITTEN_BEFORE, ids=lambda p: p.stem)
+def test_checkpoints_written_by_earlier_versions_still_load_resume_and_export(path, tmp_path):
+    """Files from commit 5510455 (before the model's action width was renamed, generators
+    were saved with their device and TrainConfig gained options)."""
+    from mat_runtime import Policy
+
+    loaded = LoadedPolicy.from_checkpoint(path)
+    with Trainer.load(path, out_dir=tmp_path / "run") as trainer:
+        assert trainer.model_config == loaded.policy.cfg
+        start = trainer.progress["steps"]
+        trainer.learn(start + 16, progress_bar=False)
+        assert trainer.progress["steps"] == start + 16
+    export(path, tmp_path / "bundle", agent_counts=(1, 2))
+    policy = Policy.load(tmp_path / "bundle")
+    assert policy.action_size == loaded.policy.cfg.action_size

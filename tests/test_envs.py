@@ -55,7 +55,7 @@ def _driven_dofs(team, row: int, dim: int) -> set[int]:
     ctrls = []
     for value in (-0.7, 0.7):
         team.reset(seed=0)
-        actions = np.zeros((team.n_agents, team.act_dim))
+        actions = np.zeros((team.n_agents, team.action_width))
         actions[row, dim] = value
         team.step(actions)
         ctrls.append(data.ctrl.copy())
@@ -73,7 +73,7 @@ def test_each_agent_observes_the_joints_it_drives(env_id):
     team = envs.make_team(env_id, seed=0)
     model = team.physics.model
     for row in range(team.n_agents):
-        for dim in range(team.act_dims[row]):
+        for dim in range(team.action_widths[row]):
             dofs = _driven_dofs(team, row, dim)
             assert dofs, f"{env_id} agent {row} action {dim} drives nothing"
             for dof in dofs:
@@ -176,7 +176,7 @@ def test_bad_actions_raise_value_error_naming_the_agent(actions, message):
 def test_array_team_refuses_bad_actions_and_wrappers_check_once(env_id, monkeypatch):
     team = envs.make_team(env_id, seed=0)
     team.reset(seed=0)
-    good = np.zeros((team.n_agents, team.act_dim))
+    good = np.zeros((team.n_agents, team.action_width))
     bad = good.copy()
     bad[1, 0] = np.nan
     with pytest.raises(ValueError, match="agent_1: action contains NaN"):
@@ -192,10 +192,10 @@ def test_array_team_refuses_bad_actions_and_wrappers_check_once(env_id, monkeypa
     assert len(calls) == 1
     env = envs.make(env_id, seed=0)  # checks its per-agent dict, then steps unchecked
     env.reset(seed=0)
-    env.step({agent: np.zeros(team.act_dim) for agent in env.agents})
+    env.step({agent: np.zeros(team.action_width) for agent in env.agents})
     with envs.make_vec(env_id, num_envs=2, seed=0) as vec:  # checks the whole batch
         vec.reset()
-        vec.step(np.zeros((2, team.n_agents, team.act_dim)))
+        vec.step(np.zeros((2, team.n_agents, team.action_width)))
     assert len(calls) == 1
 
 

@@ -16,7 +16,7 @@ pytestmark = [
 
 def test_cached_decoding_equals_teacher_forcing_on_cuda():
     torch.manual_seed(0)
-    policy = MAT(ModelConfig(obs_dim=9, action_dim=3, n_agents=17, n_block=2, n_head=2)).cuda()
+    policy = MAT(ModelConfig(obs_dim=9, action_size=3, n_agents=17, n_block=2, n_head=2)).cuda()
     obs = torch.randn(8, 17, 9, device="cuda")
     actions, log_probs, values = policy.act(obs, generator=torch.Generator("cuda").manual_seed(0))
     forced, _, forced_values = policy.evaluate(obs, actions)

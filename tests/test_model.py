@@ -12,7 +12,7 @@ from mat_sdk.model import MAT, ModelConfig, build_policy
 def test_cached_decoding_equals_teacher_forcing(action_type, n):
     torch.manual_seed(0)
     cfg = ModelConfig(
-        obs_dim=11, action_dim=4, n_agents=n, action_type=action_type, n_block=2, n_head=2
+        obs_dim=11, action_size=4, n_agents=n, action_type=action_type, n_block=2, n_head=2
     )
     policy = trained_like(MAT(cfg))
     obs = torch.randn(5, n, 11)
@@ -31,7 +31,7 @@ def test_cached_decoding_equals_teacher_forcing(action_type, n):
 
 def test_later_agents_depend_on_earlier_actions_only():
     torch.manual_seed(0)
-    policy = trained_like(MAT(ModelConfig(obs_dim=5, action_dim=2, n_agents=4)))
+    policy = trained_like(MAT(ModelConfig(obs_dim=5, action_size=2, n_agents=4)))
     obs = torch.randn(1, 4, 5)
     actions = torch.randn(1, 4, 2)
     mean, _ = policy.action_params(obs, actions)
@@ -44,7 +44,7 @@ def test_later_agents_depend_on_earlier_actions_only():
 
 @pytest.mark.parametrize("algo", ["mat", "mat-dec", "mappo"])
 def test_every_algo_acts_and_evaluates(algo):
-    policy = build_policy(ModelConfig(obs_dim=7, action_dim=3, n_agents=3, algo=algo))
+    policy = build_policy(ModelConfig(obs_dim=7, action_size=3, n_agents=3, algo=algo))
     obs = torch.randn(4, 3, 7)
     actions, log_probs, values = policy.act(obs)
     assert actions.shape == (4, 3, 3) and log_probs.shape == (4, 3, 3) and values.shape == (4, 3, 1)
@@ -55,7 +55,7 @@ def test_every_algo_acts_and_evaluates(algo):
 
 
 def test_official_std_parametrisation_and_bad_config():
-    policy = MAT(ModelConfig(obs_dim=3, action_dim=2, n_agents=2))
+    policy = MAT(ModelConfig(obs_dim=3, action_size=2, n_agents=2))
     assert torch.allclose(policy.std(), torch.sigmoid(torch.ones(2)) * 0.5)
     with pytest.raises(ValueError, match="unknown algo 'ppo'"):
-        ModelConfig(obs_dim=3, action_dim=2, n_agents=2, algo="ppo")
+        ModelConfig(obs_dim=3, action_size=2, n_agents=2, algo="ppo")

@@ -27,10 +27,10 @@ def single_step_table(robots=ROBOTS, seconds: float = 1.0) -> list[dict]:
         team = envs.make_team(env_id, seed=0)
         team.reset(seed=0)
         rng = np.random.default_rng(0)
-        actions = rng.uniform(-1, 1, (team.n_agents, team.act_dim))
+        actions = rng.uniform(-1, 1, (team.n_agents, team.action_width))
         env = envs.make(env_id, seed=0)
         env.reset(seed=0)
-        per_agent = {name: actions[i, : team.act_dims[i]] for i, name in enumerate(env.agents)}
+        per_agent = {name: actions[i, : team.action_widths[i]] for i, name in enumerate(env.agents)}
         times = compare(
             {
                 "bare": lambda p=team.physics, k=team.substeps: p.step(k),
@@ -75,7 +75,7 @@ def vector_table(env_id: str = "cheetah-6x1", num_envs: int = 40, seconds: float
     labels = {0: "in-process", **{w: _split_label(vecs[w]) for w in (1, 2)}}
     pool = mp.get_context("spawn").Pool(2)
     try:
-        shape = (num_envs, vecs[0].n_agents, vecs[0].act_dim)
+        shape = (num_envs, vecs[0].n_agents, vecs[0].action_width)
         actions = np.random.default_rng(0).uniform(-1, 1, shape)
         for vec in vecs.values():
             vec.reset()

@@ -98,9 +98,9 @@ class OfficialStyleMAT(nn.Module):
         """`get_actions` with `continuous_autoregreesive_act`: the whole decoder re-run over all
         n positions once per agent, a validated `Normal` and its log-prob per agent."""
         rep, values = self.encode(obs)
-        batch, n, action_dim = *obs.shape[:2], self.ours.cfg.action_dim
-        shifted = obs.new_zeros(batch, n, action_dim)
-        actions = obs.new_zeros(batch, n, action_dim)
+        batch, n, action_size = *obs.shape[:2], self.ours.cfg.action_size
+        shifted = obs.new_zeros(batch, n, action_size)
+        actions = obs.new_zeros(batch, n, action_size)
         log_probs = torch.zeros_like(actions)
         for i in range(n):
             mean = self.decode(shifted, rep)[:, i, :]

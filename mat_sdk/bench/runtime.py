@@ -70,8 +70,8 @@ def official_loop_act(policy, obs: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
         rep, _ = policy.encoder(obs)
         batch, n, _ = obs.shape
-        shifted = torch.zeros(batch, n, policy.cfg.action_dim)
-        actions = torch.zeros(batch, n, policy.cfg.action_dim)
+        shifted = torch.zeros(batch, n, policy.cfg.action_size)
+        actions = torch.zeros(batch, n, policy.cfg.action_size)
         for i in range(n):
             actions[:, i] = policy.decoder(shifted, rep)[:, i]
             if i + 1 < n:

@@ -145,7 +145,7 @@ def random_team_return(env_id: str, episodes: int = 16, **options) -> float:
     rng = np.random.default_rng(0)
     returns: list[float] = []
     while len(returns) < episodes:
-        _, _, _, _, info = vec.step(rng.uniform(-1, 1, (episodes, vec.n_agents, vec.act_dim)))
+        _, _, _, _, info = vec.step(rng.uniform(-1, 1, (episodes, vec.n_agents, vec.action_width)))
         returns += info["episode_return"][info["done"]].tolist()
     vec.close()
     return float(np.mean(returns))

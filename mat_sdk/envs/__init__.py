@@ -85,7 +85,7 @@ def _check_options(kind: type, env_id: str, options: Mapping[str, Any]) -> None:
 
 
 def make_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):
-    """The array-level team (`step(actions [n, act_dim])`), the fastest single env."""
+    """The array-level team (`step(actions [n, action_width])`), the fastest single env."""
     return _build_team(env_id, faults, **options)
 
 
@@ -123,7 +123,7 @@ def list_envs() -> list[dict[str, Any]]:
                 "id": env_id,
                 "agents": team.n_agents,
                 "obs": team.obs_dim,
-                "act": team.n_actions,  # discrete: the number of choices
+                "act": team.action_size,  # discrete: the number of choices
                 "episode_limit": team.episode_limit,
                 "about": spec.description if spec else team.description,
             }

@@ -56,16 +56,16 @@ def _is_real(value) -> bool:
 
 
 def invalid_action(
-    actions: np.ndarray, action_type: str, n_actions: int
+    actions: np.ndarray, action_type: str, action_size: int
 ) -> tuple[tuple[int, ...], str] | None:
-    """The first invalid action in `actions [..., act_dim]`: its index (all axes but the last)
+    """The first invalid action in `actions [..., action_width]`: its index (all axes but the last)
     and the problem, or None. Invalid: NaN or inf; for discrete teams, anything but a whole
-    choice 0..n_actions - 1 (continuous values are clipped instead)."""
+    choice 0..action_size - 1 (continuous values are clipped instead)."""
     valid = np.isfinite(actions).all(axis=-1)
     problem = "action contains NaN or inf"
     if valid.all() and action_type == "discrete":
-        valid = ((actions == np.floor(actions)) & (actions >= 0) & (actions < n_actions)).all(-1)
-        problem = f"action must be a choice 0..{n_actions - 1}"
+        valid = ((actions == np.floor(actions)) & (actions >= 0) & (actions < action_size)).all(-1)
+        problem = f"action must be a choice 0..{action_size - 1}"
     if valid.all():
         return None
     return tuple(int(i) for i in np.argwhere(~valid)[0]), problem
@@ -111,49 +111,51 @@ def render_failed(error: Exception) -> RuntimeError:
 
 
 class ArrayTeam:
-    """A team stepped with arrays: actions `[n_agents, act_dim]` in, obs `[n_agents, obs_dim]`,
+    """A team stepped with arrays: actions `[n_agents, action_width]` in, obs `[n_agents, obs_dim]`,
     the shared reward and the episode flags out.
 
     `step` checks the actions and then calls `advance`, which trusts them. The wrappers that
     check a whole batch (`VecTeam`) or a dict of per-agent actions (the PettingZoo env)
     themselves call `advance`, so each env step checks its actions once.
-    Subclasses set `n_agents`, `act_dim`, `agents`, `env_id` and implement `advance`.
+    Subclasses set `n_agents`, `action_width`, `agents`, `env_id` and implement `advance`.
     """
 
     n_agents: int
-    act_dim: int
+    action_width: int  # columns of an agent's row in the action array (padded to the widest)
+    action_widths: np.ndarray  # each agent's own action width
     agents: list[str]
     env_id: str
     action_type: str
-    n_actions: int  # continuous: act_dim; discrete: the number of choices
+    action_size: int  # continuous: action_width; discrete: the number of choices
     control_timestep: float  # simulated seconds per env step (robots; MaMuJoCo)
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
-        """Apply `actions [n_agents, act_dim]`; returns obs, reward, terminated, truncated.
+        """Apply `actions [n_agents, action_width]`; returns obs, reward, terminated, truncated.
 
-        A wrong shape, NaN or inf, or (discrete) anything but a choice 0..n_actions - 1
+        A wrong shape, NaN or inf, or (discrete) anything but a choice 0..action_size - 1
         raises `ValueError` naming the agent. Continuous teams clip finite values to [-1, 1]
         and ignore entries past an agent's own action size.
         """
         return self.advance(self.check_actions(actions))
 
     def check_actions(self, actions) -> np.ndarray:
-        """`actions` as a float64 `[n_agents, act_dim]` array of finite values, or ValueError."""
+        """`actions` as a float64 `[n_agents, action_width]` array of finite values, or
+        ValueError."""
         shape = action_shape(actions)
-        if shape != (self.n_agents, self.act_dim):
+        if shape != (self.n_agents, self.action_width):
             raise ValueError(
-                f"actions have shape {shape}, expected (n_agents, act_dim) = "
-                f"({self.n_agents}, {self.act_dim}) for {self.env_id}"
+                f"actions have shape {shape}, expected (n_agents, action_width) = "
+                f"({self.n_agents}, {self.action_width}) for {self.env_id}"
             )
         array = real_actions(actions, lambda index: self.agents[index[0]])
-        invalid = invalid_action(array, self.action_type, self.n_actions)
+        invalid = invalid_action(array, self.action_type, self.action_size)
         if invalid:
             (row,), problem = invalid
             raise ValueError(f"{self.agents[row]}: {problem}, got {array[row]}")
         return array
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        """`step` for actions already checked: a float64 `[n_agents, act_dim]` array."""
+        """`step` for actions already checked: a float64 `[n_agents, action_width]` array."""
         raise NotImplementedError
 
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:

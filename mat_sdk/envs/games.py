@@ -44,8 +44,8 @@ class CoordinationGame(ArrayTeam):
         self.active = [i for i, name in enumerate(names) if name not in removed]
         self.agents = [names[i] for i in self.active]
         self.n_agents = len(self.agents)
-        self.n_actions = self.size
-        self.act_dim, self.act_dims = 1, np.ones(self.n_agents, dtype=int)
+        self.action_size = self.size
+        self.action_width, self.action_widths = 1, np.ones(self.n_agents, dtype=int)
         self.obs_dim = 2 * self.size
         self.state_dim = self.size
         self.episode_limit = 1

@@ -64,9 +64,9 @@ class MaMuJoCoTeam(ArrayTeam):
         self.agents = self.possible_agents
         self.n_agents = len(self.agents)
         self.agent_id = True if agent_id is None else bool(agent_id)
-        self.act_dims = np.array([self._env.action_space(a).shape[0] for a in self.agents])
-        self.act_dim = int(self.act_dims.max())
-        self.n_actions = self.act_dim
+        self.action_widths = np.array([self._env.action_space(a).shape[0] for a in self.agents])
+        self.action_width = int(self.action_widths.max())
+        self.action_size = self.action_width
         self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.agents]
         self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
@@ -88,7 +88,7 @@ class MaMuJoCoTeam(ArrayTeam):
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         actions = np.clip(actions, -1.0, 1.0) * self._action_mask  # faults zero their entries
         per_agent = {
-            name: actions[row, : self.act_dims[row]] for row, name in enumerate(self.agents)
+            name: actions[row, : self.action_widths[row]] for row, name in enumerate(self.agents)
         }
         data = self._env.single_agent_env.unwrapped.data
         resets = physics_resets(data)  # MuJoCo resets a blown-up simulation silently
@@ -104,7 +104,7 @@ class MaMuJoCoTeam(ArrayTeam):
         return packed, reward, bool(terminations[first]), truncated
 
     def _fault_mask(self, faults: Mapping[str, str]) -> np.ndarray:
-        """`[n, act_dim]`: 0 where a "zero" fault silences the entry's actuator, else 1.
+        """`[n, action_width]`: 0 where a "zero" fault silences the entry's actuator, else 1.
 
         A fault names an agent (all its actuators) or a joint by its MaMuJoCo label
         (`bfoot`), as for our own robots; "remove" is not offered, since a MaMuJoCo
@@ -115,7 +115,7 @@ class MaMuJoCoTeam(ArrayTeam):
             for row, partition in enumerate(self._env.agent_action_partitions)
             for col, node in enumerate(partition)
         }
-        mask = np.ones((self.n_agents, self.act_dim))
+        mask = np.ones((self.n_agents, self.action_width))
         for name, mode in faults.items():
             if mode != "zero":
                 raise ValueError(

@@ -35,13 +35,13 @@ class TeamParallelEnv(ParallelEnv):
         self._obs_space = spaces.Box(-np.inf, np.inf, (team.obs_dim,), np.float32)
         self._discrete = team.action_type == "discrete"
         self._act_spaces = {
-            name: spaces.Discrete(team.n_actions)
+            name: spaces.Discrete(team.action_size)
             if self._discrete
             else spaces.Box(-1.0, 1.0, (int(dim),), np.float32)
-            for name, dim in zip(team.agents, team.act_dims, strict=True)
+            for name, dim in zip(team.agents, team.action_widths, strict=True)
         }
         self.state_space = spaces.Box(-np.inf, np.inf, (team.state_dim,), np.float32)
-        self._actions = np.zeros((team.n_agents, team.act_dim))
+        self._actions = np.zeros((team.n_agents, team.action_width))
 
     def observation_space(self, agent: str) -> spaces.Box:
         self._check_agent(agent)
@@ -74,7 +74,7 @@ class TeamParallelEnv(ParallelEnv):
                 shape = "an int" if self._discrete else f"shape {expected}"
                 raise ValueError(f"{agent}: action has shape {action.shape}, expected {shape}")
             action = action.reshape(expected)
-            invalid = invalid_action(action, self.team.action_type, self.team.n_actions)
+            invalid = invalid_action(action, self.team.action_type, self.team.action_size)
             if invalid:
                 raise ValueError(f"{agent}: {invalid[1]}, got {action}")
             self._actions[row, : expected[0]] = action

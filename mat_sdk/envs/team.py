@@ -1,6 +1,6 @@
 """A robot as a team of agents, stepped with arrays: the fast core under every env API.
 
-`RobotTeam.step` takes actions `[n_agents, act_dim]` and returns observations
+`RobotTeam.step` takes actions `[n_agents, action_width]` and returns observations
 `[n_agents, obs_dim]`. It steps MuJoCo directly (the way dm_control's `Physics.step` does)
 and builds every observation with one gather from a precomputed index table, so the team
 costs little more than the physics itself.
@@ -77,9 +77,9 @@ class RobotTeam(ArrayTeam):
         self.active = [i for i in range(len(self.team)) if i not in removed]
         self.agents = [agent_name(i) for i in self.active]
         self.n_agents = len(self.active)
-        self.act_dims = np.array([len(self.team[i].actuators) for i in self.active])
-        self.act_dim = max(len(a.actuators) for a in self.team)
-        self.n_actions = self.act_dim  # the policy's action size
+        self.action_widths = np.array([len(self.team[i].actuators) for i in self.active])
+        self.action_width = max(len(a.actuators) for a in self.team)
+        self.action_size = self.action_width  # the policy's action size
         self._reward = (
             spec.fast_reward if task is None and spec.fast_reward else self._task.get_reward
         )
@@ -131,12 +131,12 @@ class RobotTeam(ArrayTeam):
         return sorted({i for i, _ in hits}), [a for _, a in hits]
 
     def _build_action_map(self, zeroed: set[int]) -> None:
-        """Which entries of the `[n, act_dim]` action array drive which actuator."""
+        """Which entries of the `[n, action_width]` action array drive which actuator."""
         driven, actuators = [], []
         for row, agent in enumerate(self.active):
             for col, actuator in enumerate(self.team[agent].actuators):
                 if actuator not in zeroed:
-                    driven.append(row * self.act_dim + col)
+                    driven.append(row * self.action_width + col)
                     actuators.append(actuator)
         self._action_driven = np.array(driven, dtype=np.intp)
         self._ctrl_index = np.array(actuators, dtype=np.intp)

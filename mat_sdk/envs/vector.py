@@ -114,9 +114,9 @@ _TEAM_ATTRIBUTES = (
     "agents",
     "n_agents",
     "obs_dim",
-    "act_dim",
-    "act_dims",
-    "n_actions",
+    "action_width",
+    "action_widths",
+    "action_size",
     "action_type",
     "state_dim",
     "episode_limit",
@@ -158,7 +158,7 @@ class VecTeam:
         sizes = {
             "n": self.n_agents,
             "obs": self.obs_dim,
-            "act": self.act_dim,
+            "act": self.action_width,
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
@@ -187,14 +187,15 @@ class VecTeam:
 
     def step(self, actions: np.ndarray):
         """Step every copy; returns obs, reward, terminated, truncated, info (all arrays)."""
-        expected = (self.num_envs, self.n_agents, self.act_dim)
+        expected = (self.num_envs, self.n_agents, self.action_width)
         shape = action_shape(actions)
         if shape != expected:
             raise ValueError(
-                f"actions have shape {shape}, expected (num_envs, n_agents, act_dim) = {expected}"
+                f"actions have shape {shape}, expected (num_envs, n_agents, action_width) = "
+                f"{expected}"
             )
         actions = real_actions(actions, lambda i: f"env {i[0]}, {self.agents[i[1]]}")
-        invalid = invalid_action(actions, self.action_type, self.n_actions)
+        invalid = invalid_action(actions, self.action_type, self.action_size)
         if invalid:
             (env, agent), problem = invalid
             raise ValueError(f"env {env}, {self.agents[agent]}: {problem}")
