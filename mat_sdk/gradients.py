@@ -46,10 +46,12 @@ def _loss_function(compile_mode: str | None):
     return torch.compile(minibatch_loss, mode=compile_mode, dynamic=False)
 
 
-def _share_backward(loss, policy, coefficients, flat, rows: Tensor, targets: Tensor, weight: float):
+def _share_backward(
+    loss, policy, coefficients, batch, rows: Tensor, targets: Tensor, weight: float
+):
     """Backpropagate the loss of one share of a minibatch, weighted by its fraction of the
     rows; its weighted loss terms, stacked as `_TERMS`."""
-    mb = {key: value[rows] for key, value in flat.items()}
+    mb = {key: value[rows] for key, value in batch.items()}
     terms = loss(policy, mb, targets, coefficients)
     (terms.total * weight).backward()
     return torch.stack([getattr(terms, name).detach() for name in _TERMS]) * weight
@@ -70,11 +72,11 @@ class _Share:
             group = [params[i] for i in indices]
             for param, view in zip(group, views(grad, group), strict=True):
                 param.grad = view
-        self.flat = self.idx = self.targets = None
+        self.update_batch = self.idx = self.targets = None
 
-    def batch(self, flat: dict[str, Tensor], idx: Tensor, targets: Tensor) -> None:
+    def batch(self, batch: dict[str, Tensor], idx: Tensor, targets: Tensor) -> None:
         """This update's rows; each step's minibatch indexes into them."""
-        self.flat, self.idx, self.targets = flat, idx, targets
+        self.update_batch, self.idx, self.targets = batch, idx, targets
 
     def step(self) -> None:
         rows = int(self.rows[0])
@@ -85,7 +87,7 @@ class _Share:
             self.loss,
             self.policy,
             self.coefficients,
-            self.flat,
+            self.update_batch,
             self.idx[lo:hi],
             self.targets[lo:hi],
             (hi - lo) / rows,
@@ -102,7 +104,7 @@ class MinibatchGradients:
     computed by this process alone (`workers=0`) or split with `workers` update worker
     processes (CPU).
 
-        gradients.share(flat)                   # once per update: the batch as rows
+        gradients.share(batch)                   # once per update: the batch as rows
         terms = gradients.backward(idx, targets)  # per minibatch: its row indices, targets
 
     The workers start on the first `share` (or `start`), and read the policy's weights
@@ -121,7 +123,7 @@ class MinibatchGradients:
         self.coefficients = LossCoefficients.of(config)
         self.compile_mode = compile_mode
         self._loss = _loss_function(compile_mode)
-        self._flat: dict[str, Tensor] = {}
+        self._batch: dict[str, Tensor] = {}
         self._workers: list[WorkerProcess] = []
         self._setting_up = self._closed = False
 
@@ -141,7 +143,7 @@ class MinibatchGradients:
         spin = processes.SPIN_SECONDS if self.workers < processes.usable_cores() else 0.0
         parts = self.workers + 1
         for rank in range(1, parts):
-            grads = [torch.zeros_like(flat).share_memory_() for flat in self.params.buffers]
+            grads = [torch.zeros_like(b).share_memory_() for b in self.params.buffers]
             terms = torch.zeros(len(_TERMS)).share_memory_()
             self._results.append((grads, terms))
             shared = (self._rows, layout, grads, terms)
@@ -149,30 +151,30 @@ class MinibatchGradients:
             self._workers.append(WorkerProcess(context, _worker, arguments, spin))
         self._setting_up = True
 
-    def share(self, flat: dict[str, Tensor]) -> None:
+    def share(self, batch: dict[str, Tensor]) -> None:
         """This update's batch as rows `{name: [rows, ...]}`; minibatches index into it."""
-        self._flat = flat
+        self._batch = batch
         if not self.workers:
             return
         self.start()
         if self._setting_up:
             self._wait()
             self._setting_up = False
-        rows = next(iter(flat.values())).shape[0]
+        rows = next(iter(batch.values())).shape[0]
         if self._idx.shape[0] < rows:
             self._idx = torch.empty(rows, dtype=torch.int64).share_memory_()
-            self._targets = torch.empty_like(flat["returns"]).share_memory_()
-        for value in flat.values():
+            self._targets = torch.empty_like(batch["returns"]).share_memory_()
+        for value in batch.values():
             value.share_memory_()
         for worker in self._workers:
-            worker.go("batch", (flat, self._idx, self._targets))
+            worker.go("batch", (batch, self._idx, self._targets))
         self._wait()
 
     def backward(self, idx: Tensor, targets: Tensor) -> LossTerms:
         """Accumulate into `.grad` the gradient of the mean loss over rows `idx` (targets:
         their normalised returns); returns the minibatch's loss terms."""
         if not self.workers:
-            mb = {key: value[idx] for key, value in self._flat.items()}
+            mb = {key: value[idx] for key, value in self._batch.items()}
             terms = self._loss(self.policy, mb, targets, self.coefficients)
             terms.total.backward()
             return terms
@@ -190,7 +192,7 @@ class MinibatchGradients:
                 self._loss,
                 self.policy,
                 self.coefficients,
-                self._flat,
+                self._batch,
                 idx[:own],
                 targets[:own],
                 own / rows,
@@ -198,8 +200,8 @@ class MinibatchGradients:
         finally:  # the workers' round ends either way
             self._wait()
         for worker_grads, worker_terms in self._results:
-            for flat, grad in zip(self.params.buffers, worker_grads, strict=True):
-                flat.grad.add_(grad)
+            for buffer, grad in zip(self.params.buffers, worker_grads, strict=True):
+                buffer.grad.add_(grad)
             terms += worker_terms
         return LossTerms(*terms)
 

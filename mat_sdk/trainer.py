@@ -87,8 +87,8 @@ class Trainer:
         self.params = FlatParameters([group.pop("params") for group in groups])
         self.optimizer = torch.optim.Adam(
             [
-                {"params": [flat], **group}
-                for flat, group in zip(self.params.buffers, groups, strict=True)
+                {"params": [buffer], **group}
+                for buffer, group in zip(self.params.buffers, groups, strict=True)
             ],
             lr=self.config.lr,
             eps=self.config.adam_eps,
@@ -229,11 +229,11 @@ class Trainer:
         finished = trajectories.pop("finished")
         return self.collector.advantages(trajectories, self.value_norm), finished
 
-    def _update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def _update(self, trajectories: dict[str, torch.Tensor]) -> dict[str, float]:
         cfg = self.config
-        flat = RolloutCollector.rows(batch, cfg.advantage_std_floor)
-        self.gradients.share(flat)
-        size = flat["obs"].shape[0]
+        batch = RolloutCollector.rows(trajectories, cfg.advantage_std_floor)
+        self.gradients.share(batch)
+        size = batch["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
         # Accumulate on the device and read once per update: no host sync per minibatch.
         sums = dict.fromkeys(
@@ -246,7 +246,7 @@ class Trainer:
             permutation = permutation.to(self.device)
             for k in range(cfg.num_minibatches):
                 idx = permutation[k * minibatch : (k + 1) * minibatch]
-                terms, grad_norm = self.optimizer_step(flat, idx)
+                terms, grad_norm = self.optimizer_step(batch, idx)
                 finite &= torch.isfinite(terms.total)
                 for key, value in (
                     ("policy_loss", terms.policy),
@@ -264,10 +264,10 @@ class Trainer:
             )
         return {key: float(value) / count for key, value in sums.items()}
 
-    def optimizer_step(self, flat: dict[str, torch.Tensor], idx: torch.Tensor):
-        """One PPO step on the minibatch of rows `idx` of the update's batch `flat` (already
+    def optimizer_step(self, batch: dict[str, torch.Tensor], idx: torch.Tensor):
+        """One PPO step on the minibatch of rows `idx` of the update's `batch` of rows (already
         shared with `self.gradients`); its loss terms and gradient norm before clipping."""
-        returns = flat["returns"][idx]
+        returns = batch["returns"][idx]
         self.value_norm.update(returns)
         self.params.zero_grad()
         terms = self.gradients.backward(idx, self.value_norm.normalize(returns))

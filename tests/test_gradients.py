@@ -13,10 +13,10 @@ SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
 
 def shared_rows(trainer: Trainer) -> dict[str, torch.Tensor]:
     """A rollout's batch as rows, shared with the trainer's update workers."""
-    batch, _ = trainer.rollout()
-    flat = RolloutCollector.rows(batch)
-    trainer.gradients.share(flat)
-    return flat
+    trajectories, _ = trainer.rollout()
+    batch = RolloutCollector.rows(trajectories)
+    trainer.gradients.share(batch)
+    return batch
 
 
 def _train_hopper(**options):
@@ -45,9 +45,9 @@ def test_a_split_update_trains_like_one_process(options):
 
 def test_update_worker_errors_are_reported_with_their_cause():
     with Trainer("hopper-4x1", "mat", update_workers=1, **TINY) as trainer:
-        flat = shared_rows(trainer)
+        batch = shared_rows(trainer)
         rows = torch.tensor([0, 1, 2, 10_000])  # the worker's share holds the bad row
-        targets = flat["returns"][:4]
+        targets = batch["returns"][:4]
         with pytest.raises(RuntimeError, match="update worker failed") as error:
             trainer.gradients.backward(rows, targets)
         assert "IndexError" in str(error.value)
@@ -55,10 +55,10 @@ def test_update_worker_errors_are_reported_with_their_cause():
             trainer.gradients.start()
 
     with Trainer("hopper-4x1", "mat", update_workers=1, **TINY) as trainer:
-        flat = shared_rows(trainer)
+        batch = shared_rows(trainer)
         trainer.gradients._workers[0].process.kill()
         with pytest.raises(RuntimeError, match="a worker process died"):
-            trainer.gradients.backward(torch.arange(4), flat["returns"][:4])
+            trainer.gradients.backward(torch.arange(4), batch["returns"][:4])
 
 
 def test_update_workers_need_rows_to_split():

@@ -22,14 +22,14 @@ from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
 
-def _reference_step(trainer: Trainer, flat: dict[str, torch.Tensor]):
+def _reference_step(trainer: Trainer, batch: dict[str, torch.Tensor]):
     model = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents).to(trainer.device)
     # torch's defaults, as the official code has them: for-loops on CPU, foreach on CUDA
     optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5)
     value_norm = ValueNorm(device=trainer.device)
 
     def step(idx):
-        mb = {key: value[idx] for key, value in flat.items()}
+        mb = {key: value[idx] for key, value in batch.items()}
         loss = official_loss(model, value_norm, mb, trainer.config)
         optimizer.zero_grad()
         loss.backward()
@@ -55,7 +55,7 @@ def _keeping_subnormals(step):
 
 def _variant(
     trainer: Trainer,
-    flat: dict[str, torch.Tensor],
+    batch: dict[str, torch.Tensor],
     update_workers: int = 0,
     compile_mode: str | None = None,
 ) -> Trainer:
@@ -68,7 +68,7 @@ def _variant(
     twin.gradients = MinibatchGradients(
         twin.policy, twin.params, trainer.config, update_workers, compile_mode
     )
-    twin.gradients.share(flat)
+    twin.gradients.share(batch)
     return twin
 
 
@@ -90,34 +90,34 @@ def main(
         start = time.perf_counter()
         rollouts = 2
         for _ in range(rollouts):
-            batch, _ = trainer.rollout()
+            trajectories, _ = trainer.rollout()
         rollout_s = (time.perf_counter() - start) / rollouts
-        flat = RolloutCollector.rows(batch)
-        size = flat["obs"].shape[0] // 40
+        batch = RolloutCollector.rows(trajectories)
+        size = batch["obs"].shape[0] // 40
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
         cpu = trainer.device.type == "cpu"
         split = cpu and usable_cores() > 1  # an update worker needs a core of its own
         twins = {
-            "ours, subnormals kept": _variant(trainer, flat),
-            "ours (default)": _variant(trainer, flat),
+            "ours, subnormals kept": _variant(trainer, batch),
+            "ours (default)": _variant(trainer, batch),
         }
         if split:
-            twins["ours + 1 update worker"] = _variant(trainer, flat, update_workers=1)
+            twins["ours + 1 update worker"] = _variant(trainer, batch, update_workers=1)
         if compiled:
-            twins["ours + torch.compile"] = _variant(trainer, flat, compile_mode="default")
+            twins["ours + torch.compile"] = _variant(trainer, batch, compile_mode="default")
             if split:
                 twins["ours + torch.compile + 1 update worker"] = _variant(
-                    trainer, flat, update_workers=1, compile_mode="default"
+                    trainer, batch, update_workers=1, compile_mode="default"
                 )
             if not cpu:  # the GPU step is launch-bound: CUDA graphs
                 twins["ours + torch.compile (CUDA graphs)"] = _variant(
-                    trainer, flat, compile_mode="reduce-overhead"
+                    trainer, batch, compile_mode="reduce-overhead"
                 )
         variants = {
-            "reference (official style)": _reference_step(trainer, flat),
-            "reference, subnormals kept": _keeping_subnormals(_reference_step(trainer, flat)),
+            "reference (official style)": _reference_step(trainer, batch),
+            "reference, subnormals kept": _keeping_subnormals(_reference_step(trainer, batch)),
         }
-        variants |= {name: partial(twin.optimizer_step, flat) for name, twin in twins.items()}
+        variants |= {name: partial(twin.optimizer_step, batch) for name, twin in twins.items()}
         variants["ours, subnormals kept"] = _keeping_subnormals(variants["ours, subnormals kept"])
         for step in variants.values():  # warm-up (and compilation)
             step(minibatches[0])
