@@ -68,8 +68,21 @@ def training_payload(trainer) -> dict[str, Any]:
     }
 
 
-def restore_training(trainer, payload: dict[str, Any]) -> None:
-    """Put a `training_payload` back into a trainer built from its config."""
+def restore_training(trainer, payload: dict[str, Any], path: str | os.PathLike) -> None:
+    """Put a `training_payload` back into a trainer built from its config, or raise
+    `CheckpointError` saying the file at `path` cannot be resumed from."""
+    try:
+        _restore(trainer, payload)
+    except CheckpointError:
+        raise
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
+        raise CheckpointError(
+            f"{path}: cannot resume from it, its training state is incomplete or damaged "
+            f"({type(error).__name__}: {error})"
+        ) from None
+
+
+def _restore(trainer, payload: dict[str, Any]) -> None:
     collector = trainer.collector
     load_weights(trainer.policy, payload["model"], "the checkpoint")
     collector.obs_norm.load_state_dict(payload["obs_norm"])
@@ -84,7 +97,7 @@ def restore_training(trainer, payload: dict[str, Any]) -> None:
             f"the checkpoint's sampling generator is a {saved_on} one and this run is on "
             f"{collector.device.type}: sampling is reseeded, so the run goes on but not "
             "exactly as it would have on the same device",
-            stacklevel=3,
+            stacklevel=4,
         )
         collector.generator.manual_seed(trainer.config.seed + trainer.progress["updates"])
     collector.shuffle_generator.set_state(payload["rng"]["shuffle"])

@@ -303,16 +303,10 @@ class Trainer:
             raise checkpoint.CheckpointError(f"{path}: config.train names no env and algo")
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
         try:
-            trainer.restore(payload)
-        except checkpoint.CheckpointError:
+            checkpoint.restore_training(trainer, payload, path)
+        except BaseException:
             trainer.close()
             raise
-        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
-            trainer.close()
-            raise checkpoint.CheckpointError(
-                f"{path}: cannot resume from it, its training state is incomplete or damaged "
-                f"({type(error).__name__}: {error})"
-            ) from None
         return trainer
 
     @classmethod
@@ -376,10 +370,6 @@ class Trainer:
 
         norm = self.obs_norm if self.config.normalize_obs else None
         return LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
-
-    def restore(self, payload: dict[str, Any]) -> None:
-        """Everything a checkpoint holds: weights, normalisers, optimizer, RNG and env states."""
-        checkpoint.restore_training(self, payload)
 
     def close(self) -> None:
         self.env.close()
