@@ -137,6 +137,7 @@ def main() -> None:
       mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat bench envs                    env stepping speed (also: runtime, train, scaling)
+      mat bench seeds                   the learning tests' recipes on many seeds
     """
 
 
