@@ -135,6 +135,21 @@ class TrainConfig:
         if self.flush_denormal:
             torch.set_flush_denormal(True)
 
+    def check_batching(self) -> None:
+        """Refuse minibatches that cannot be formed, or split over the update workers."""
+        per_update = self.num_envs * self.rollout_length
+        if self.num_minibatches > per_update:
+            raise ValueError(
+                f"num_minibatches {self.num_minibatches} > env-steps per update {per_update} "
+                "(num_envs x rollout_length)"
+            )
+        if per_update // self.num_minibatches < self.update_workers + 1:
+            raise ValueError(
+                f"update_workers {self.update_workers}: a minibatch of "
+                f"{per_update // self.num_minibatches} env-steps cannot be split "
+                f"{self.update_workers + 1} ways; use fewer update workers or minibatches"
+            )
+
     def make_envs(self, num_envs: int | None = None, workers: int | None = None):
         """The vectorised envs this config trains on (default: `num_envs` copies stepped by
         `workers` processes), copy i seeded `seed + i`."""

@@ -7,6 +7,8 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
+
 from mat_sdk.checkpoint import remove_stale_temp_files
 
 METRICS_NAME = "metrics.csv"
@@ -63,6 +65,60 @@ class RunLog:
         self._file.close()
         self._tensorboard.close()
         plot_curve(self.path, self.out_dir / CURVE_NAME)
+
+
+def update_metrics(
+    progress: dict[str, int],
+    finished: list[float],
+    rewards,
+    losses: dict[str, float],
+    env_steps: int,
+    rollout_s: float,
+    update_s: float,
+) -> dict[str, float]:
+    """One update's row of metrics.csv: progress, the returns of the episodes that finished,
+    the team reward per env step (`rewards` of its `env_steps`), the losses and timings."""
+    return {
+        "steps": progress["steps"],
+        "updates": progress["updates"],
+        "return_mean": float(np.mean(finished)) if finished else math.nan,
+        "return_min": float(np.min(finished)) if finished else math.nan,
+        "return_max": float(np.max(finished)) if finished else math.nan,
+        "episodes": len(finished),
+        # the team reward per env step in this rollout: a signal every update, also while
+        # no episode has ended yet (dm_control tasks: 0..1)
+        "reward_per_step": float(rewards.mean()),
+        **losses,
+        "rollout_s": rollout_s,
+        "update_s": update_s,
+        "steps_per_s": env_steps / (rollout_s + update_s),
+    }
+
+
+class ProgressBar:
+    """tqdm over env steps, showing the latest finished episodes' mean return ("-" until one
+    finishes), the team reward per step and env-steps/s."""
+
+    def __init__(self, total: int, done: int, enabled: bool):
+        from tqdm.auto import tqdm
+
+        self._bar = tqdm(
+            total=total, initial=done, unit="step", disable=not enabled, dynamic_ncols=True
+        )
+        self._shown_return = "-"
+
+    def show(self, metrics: dict[str, float], steps: int) -> None:
+        if metrics["episodes"]:
+            self._shown_return = f"{metrics['return_mean']:.1f}"
+        self._bar.update(steps)
+        self._bar.set_postfix(
+            ret=self._shown_return,
+            rew=f"{metrics['reward_per_step']:.3g}",
+            sps=f"{metrics['steps_per_s']:.0f}",
+        )
+
+    def close(self) -> None:
+        self._bar.close()
 
 
 def _complete_rows(path: Path) -> tuple[list[str] | None, list[dict], bool]:

@@ -30,7 +30,7 @@ from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.rollout import RolloutCollector
-from mat_sdk.run_log import RunLog
+from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
 
 
 class TrainingDiverged(RuntimeError):
@@ -153,60 +153,31 @@ class Trainer:
         Checkpoints go to `out_dir/checkpoint.pt` every `checkpoint_every` updates and at the end.
         """
         cfg = self.config
+        cfg.check_batching()  # refused before the first rollout
         per_update = cfg.num_envs * cfg.rollout_length
-        if cfg.num_minibatches > per_update:  # refused before the first rollout
-            raise ValueError(
-                f"num_minibatches {cfg.num_minibatches} > env-steps per update {per_update} "
-                "(num_envs x rollout_length)"
-            )
-        if per_update // cfg.num_minibatches < cfg.update_workers + 1:
-            raise ValueError(
-                f"update_workers {cfg.update_workers}: a minibatch of "
-                f"{per_update // cfg.num_minibatches} env-steps cannot be split "
-                f"{cfg.update_workers + 1} ways; use fewer update workers or minibatches"
-            )
         self.gradients.start()  # the update workers start up during the first rollout
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         done = self.progress["steps"]
         end = done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
-        bar = _progress(end, done, progress_bar)  # whole updates: may end past total_steps
-        shown_return = "-"  # the latest finished episodes' mean; "-" until one finishes
+        bar = ProgressBar(end, done, progress_bar)  # whole updates: may end past total_steps
         try:
             while self.progress["steps"] < total_steps:
                 start = time.perf_counter()
-                batch, finished = self.rollout()
+                trajectories, finished = self.rollout()
                 rolled = time.perf_counter()
-                losses = self._update(batch)
+                losses = self._update(trajectories)
                 updated = time.perf_counter()
                 self.progress["steps"] += per_update
                 self.progress["updates"] += 1
-                metrics = {
-                    "steps": self.progress["steps"],
-                    "updates": self.progress["updates"],
-                    "return_mean": float(np.mean(finished)) if finished else math.nan,
-                    "return_min": float(np.min(finished)) if finished else math.nan,
-                    "return_max": float(np.max(finished)) if finished else math.nan,
-                    "episodes": len(finished),
-                    # the team reward per env step in this rollout: a signal every update,
-                    # also while no episode has ended yet (dm_control tasks: 0..1)
-                    "reward_per_step": float(batch["rewards"].mean()),
-                    **losses,
-                    "rollout_s": rolled - start,
-                    "update_s": updated - rolled,
-                    "steps_per_s": per_update / (updated - start),
-                }
+                metrics = update_metrics(
+                    self.progress, finished, trajectories["rewards"], losses, per_update,
+                    rollout_s=rolled - start, update_s=updated - rolled,
+                )  # fmt: skip
                 if log:
                     log.write(metrics)
                 if self.out_dir and self.progress["updates"] % cfg.checkpoint_every == 0:
                     self.save(self.out_dir / CHECKPOINT_NAME)
-                if finished:
-                    shown_return = f"{metrics['return_mean']:.1f}"
-                bar.update(per_update)
-                bar.set_postfix(
-                    ret=shown_return,
-                    rew=f"{metrics['reward_per_step']:.3g}",
-                    sps=f"{metrics['steps_per_s']:.0f}",
-                )
+                bar.show(metrics, per_update)
                 if callback is not None and callback(self, metrics) is False:
                     break
             if self.out_dir:
@@ -382,9 +353,3 @@ class Trainer:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _progress(total: int, done: int, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, initial=done, unit="step", disable=not enabled, dynamic_ncols=True)
