@@ -98,3 +98,32 @@ class FlatParameters:
                 }
         param_groups = [{**group, "params": [g]} for g, group in enumerate(groups)]
         return {"state": state, "param_groups": param_groups}
+
+
+def flat_adam(
+    model: nn.Module,
+    lr: float,
+    eps: float,
+    second: nn.Module | None = None,
+    second_lr: float | None = None,
+) -> tuple[FlatParameters, torch.optim.Adam]:
+    """Fused Adam over `model`'s parameters laid out flat: one group, or two when a `second`
+    part of the model (e.g. MAPPO's critic) has its own learning rate `second_lr`."""
+    groups = [{"params": list(model.parameters())}]
+    if second is not None:
+        own = {id(p) for p in second.parameters()}
+        groups = [
+            {"params": [p for p in model.parameters() if id(p) not in own]},
+            {"params": list(second.parameters()), "lr": second_lr},
+        ]
+    params = FlatParameters([group.pop("params") for group in groups])
+    optimizer = torch.optim.Adam(
+        [
+            {"params": [buffer], **group}
+            for buffer, group in zip(params.buffers, groups, strict=True)
+        ],
+        lr=lr,
+        eps=eps,
+        fused=True,
+    )
+    return params, optimizer

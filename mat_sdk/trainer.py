@@ -25,7 +25,7 @@ import torch
 from mat_sdk import checkpoint
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
-from mat_sdk.flat_params import FlatParameters
+from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
@@ -82,29 +82,12 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
 
     def build_optimizer(self) -> None:
-        """Adam over the policy's parameters, laid out flat (`FlatParameters`)."""
-        groups = self._param_groups()
-        self.params = FlatParameters([group.pop("params") for group in groups])
-        self.optimizer = torch.optim.Adam(
-            [
-                {"params": [buffer], **group}
-                for buffer, group in zip(self.params.buffers, groups, strict=True)
-            ],
-            lr=self.config.lr,
-            eps=self.config.adam_eps,
-            fused=True,
+        """Adam over the policy's parameters, laid out flat (`FlatParameters`); MAPPO's
+        critic gets its own learning rate when `critic_lr` is set."""
+        critic = getattr(self.policy, "critic", None) if self.config.critic_lr else None
+        self.params, self.optimizer = flat_adam(
+            self.policy, self.config.lr, self.config.adam_eps, critic, self.config.critic_lr
         )
-
-    def _param_groups(self) -> list[dict]:
-        critic = getattr(self.policy, "critic", None)
-        if critic is None or self.config.critic_lr is None:
-            return [{"params": list(self.policy.parameters())}]
-        critic_ids = {id(p) for p in critic.parameters()}
-        actor = [p for p in self.policy.parameters() if id(p) not in critic_ids]
-        return [
-            {"params": actor},
-            {"params": list(critic.parameters()), "lr": self.config.critic_lr},
-        ]
 
     # ------------------------------------------------------------------ acting
     @property
