@@ -37,6 +37,32 @@ class LoadedPolicy:
             norm.load_state_dict(payload["obs_norm"])
         return cls(policy, norm, payload["config"])
 
+    def predict(self, obs, team, deterministic: bool = True, generator=None):
+        """Actions for raw observations of `team` (an env with its agents and sizes): an
+        array [n, obs_dim] or [B, n, obs_dim] -> an array [.., n, action_width] (discrete:
+        [.., n, 1] choice indices); or a PettingZoo obs dict {agent: obs} -> an action dict
+        ready for `env.step` (each agent's own action width; discrete: an int)."""
+        if isinstance(obs, Mapping):
+            agents = list(team.agents)
+            if set(obs) != set(agents):
+                raise ValueError(
+                    f"obs must have one entry per agent of {team.env_id}: {agents}; got {list(obs)}"
+                )
+            stacked = np.stack([np.asarray(obs[a]) for a in agents])
+            actions = self.predict(stacked, team, deterministic, generator)
+            if team.action_type == "discrete":
+                return {a: int(actions[i, 0]) for i, a in enumerate(agents)}
+            return {a: actions[i, : team.action_widths[i]] for i, a in enumerate(agents)}
+        obs = np.asarray(obs, dtype=np.float32)
+        single = obs.ndim == 2
+        batch = obs[None] if single else obs
+        if batch.ndim != 3 or batch.shape[-1] != team.obs_dim:
+            raise ValueError(
+                f"obs must be [n, {team.obs_dim}] or [B, n, {team.obs_dim}], got {obs.shape}"
+            )
+        actions = self.act(batch, deterministic, generator)
+        return actions[0] if single else actions
+
     def act(self, obs: np.ndarray, deterministic: bool = True, generator=None) -> np.ndarray:
         """Raw observations [B, n, obs_dim] -> actions [B, n, A or 1] (numpy)."""
         if self.obs_norm is not None:

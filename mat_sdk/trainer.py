@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from mat_sdk import checkpoint
@@ -95,33 +94,9 @@ class Trainer:
         return self.collector.obs_norm
 
     def predict(self, obs, deterministic: bool = True):
-        """Actions for raw observations: an array [n, obs_dim] or [B, n, obs_dim] -> an array
-        [.., n, action_width] (discrete: [.., n, 1] choice indices); or a PettingZoo obs dict
-        {agent: obs} -> an action dict ready for `env.step` (each agent's own action size;
-        discrete: an int)."""
-        if isinstance(obs, Mapping):
-            return self._predict_by_agent(obs, deterministic)
-        obs = np.asarray(obs, dtype=np.float32)
-        single = obs.ndim == 2
-        batch = obs[None] if single else obs
-        if batch.ndim != 3 or batch.shape[-1] != self.env.obs_dim:
-            raise ValueError(
-                f"obs must be [n, {self.env.obs_dim}] or [B, n, {self.env.obs_dim}], "
-                f"got {obs.shape}"
-            )
-        actions = self._as_loaded().act(batch, deterministic, self.collector.generator)
-        return actions[0] if single else actions
-
-    def _predict_by_agent(self, obs: Mapping, deterministic: bool) -> dict:
-        agents = list(self.env.agents)
-        if set(obs) != set(agents):
-            raise ValueError(
-                f"obs must have one entry per agent of {self.env.env_id}: {agents}; got {list(obs)}"
-            )
-        actions = self.predict(np.stack([np.asarray(obs[a]) for a in agents]), deterministic)
-        if self.env.action_type == "discrete":
-            return {a: int(actions[i, 0]) for i, a in enumerate(agents)}
-        return {a: actions[i, : self.env.action_widths[i]] for i, a in enumerate(agents)}
+        """Actions for raw observations (`LoadedPolicy.predict`): an array [n, obs_dim] or
+        [B, n, obs_dim] -> an array, or a PettingZoo obs dict -> an action dict."""
+        return self._as_loaded().predict(obs, self.env, deterministic, self.collector.generator)
 
     # ---------------------------------------------------------------- training
     def learn(
