@@ -68,6 +68,42 @@ def training_payload(trainer) -> dict[str, Any]:
     }
 
 
+# What `Trainer.load` may change: how the run is computed, not what is trained.
+RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
+
+
+def training_options(
+    payload: dict[str, Any], path: str | os.PathLike, overrides: dict[str, Any]
+) -> dict[str, Any]:
+    """The `TrainConfig` fields of the run a checkpoint holds, with `overrides` of how to run
+    it (`RESUME_OVERRIDES`); anything else is refused, since the task, model and
+    hyperparameters are the checkpoint's."""
+    unknown = set(overrides) - set(RESUME_OVERRIDES)
+    if unknown:
+        raise ValueError(
+            f"Trainer.load can override only {sorted(RESUME_OVERRIDES)}; the task, model and "
+            "hyperparameters come from the checkpoint"
+        )
+    train = {**payload["config"]["train"], **overrides}
+    if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
+        raise CheckpointError(f"{path}: config.train names no env and algo")
+    return train
+
+
+def restore_pretrained(
+    trainer, payload: dict[str, Any], path: str | os.PathLike, keep_optimizer: bool
+) -> None:
+    """A pre-trained policy into a new run (few-shot): its weights and both normalisers, and
+    with `keep_optimizer` its Adam moments (at the new run's learning rate)."""
+    load_weights(trainer.policy, payload["model"], path)
+    trainer.obs_norm.load_state_dict(payload["obs_norm"])
+    trainer.value_norm.load_state_dict(payload["value_norm"])
+    if keep_optimizer:
+        trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
+        for group in trainer.optimizer.param_groups[:1]:
+            group["lr"] = trainer.config.lr
+
+
 def restore_training(trainer, payload: dict[str, Any], path: str | os.PathLike) -> None:
     """Put a `training_payload` back into a trainer built from its config, or raise
     `CheckpointError` saying the file at `path` cannot be resumed from."""

@@ -250,8 +250,6 @@ FINETUNE_OPTIONS = {
     "faults": "--fault NAME=zero|remove",
     "lr": "--lr",
 }
-# What `--resume` may change: how the run is computed, not what is trained.
-RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 
 
 @main.command()
@@ -395,7 +393,7 @@ def _resume_overrides(ckpt: Path, given: dict) -> dict:
     train = checkpoints.load(ckpt)["config"]["train"]
     overrides = {}
     for field, value in given.items():
-        if field in RESUME_OVERRIDES:
+        if field in checkpoints.RESUME_OVERRIDES:
             overrides[field] = value
         elif field not in train:
             raise click.BadParameter(f"{field} is not a training option", param_hint="--set")

@@ -220,16 +220,7 @@ class Trainer:
         Overrides may change how to run (device, workers, out_dir), not what is trained.
         """
         payload = checkpoint.load(path)
-        train = dict(payload["config"]["train"])
-        allowed = {"device", "workers", "update_workers", "checkpoint_every"}
-        if set(overrides) - allowed:
-            raise ValueError(
-                f"Trainer.load can override only {sorted(allowed)}; the task, model and "
-                "hyperparameters come from the checkpoint"
-            )
-        train.update(overrides)
-        if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
-            raise checkpoint.CheckpointError(f"{path}: config.train names no env and algo")
+        train = checkpoint.training_options(payload, path, overrides)
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
         try:
             checkpoint.restore_training(trainer, payload, path)
@@ -273,15 +264,8 @@ class Trainer:
         env = env or trained_env
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
-            pretrained = build_policy(ModelConfig.from_dict(model))
-            check_compatible(pretrained, trainer.env, env)
-            checkpoint.load_weights(trainer.policy, payload["model"], checkpoint_path)
-            trainer.obs_norm.load_state_dict(payload["obs_norm"])
-            trainer.value_norm.load_state_dict(payload["value_norm"])
-            if not reset_optimizer:
-                trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
-                for group in trainer.optimizer.param_groups[:1]:
-                    group["lr"] = trainer.config.lr
+            check_compatible(build_policy(ModelConfig.from_dict(model)), trainer.env, env)
+            checkpoint.restore_pretrained(trainer, payload, checkpoint_path, not reset_optimizer)
         except BaseException:
             trainer.close()
             raise
