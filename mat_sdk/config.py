@@ -135,6 +135,25 @@ class TrainConfig:
         if self.flush_denormal:
             torch.set_flush_denormal(True)
 
+    def resolve_device(self):
+        """The torch device to train on ("auto": CUDA where torch sees it, else the CPU), or
+        ValueError for one this machine or these options cannot use."""
+        import torch
+
+        if self.device == "auto":
+            device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        else:
+            device = torch.device(self.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(
+                "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
+            )
+        if self.update_workers and device.type != "cpu":
+            raise ValueError(
+                "update_workers splits CPU updates over processes; on a GPU use update_workers=0"
+            )
+        return device
+
     def check_batching(self) -> None:
         """Refuse minibatches that cannot be formed, or split over the update workers."""
         per_update = self.num_envs * self.rollout_length

@@ -48,14 +48,7 @@ class Trainer:
     ):
         self.config = TrainConfig.for_algo(algo, env=env, **options)
         cfg = self.config
-        if cfg.device == "auto":
-            self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        else:
-            self.device = torch.device(cfg.device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(
-                "device 'cuda' requested but torch sees no CUDA device; use --device cpu"
-            )
+        self.device = cfg.resolve_device()
         torch.manual_seed(cfg.seed)
         cfg.configure_torch()
         self._remote = None
@@ -68,10 +61,6 @@ class Trainer:
         self.model_config = cfg.model_config(self.env)
         self.policy: Policy = build_policy(self.model_config).to(self.device)
         self.build_optimizer()
-        if cfg.update_workers and self.device.type != "cpu":
-            raise ValueError(
-                "update_workers splits CPU updates over processes; on a GPU use update_workers=0"
-            )
         self.gradients = MinibatchGradients(
             self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
         )
