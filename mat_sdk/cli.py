@@ -274,8 +274,8 @@ FINETUNE_OPTIONS = {
     default=TrainConfig.update_workers,
     show_default=True,
     help="Processes that each compute the gradient of a share of every minibatch (CPU; the "
-    "same math). On C cores use at most C - 1; 1 on 2 cores: 1.3-1.5x faster updates, "
-    "~2x the official-style update with --set compile=true.",
+    "same math). On C cores use at most C - 1; with --set compile=true, the fastest update "
+    "on 2 cores (BENCHMARKS.md).",
 )
 @click.option("--seed", default=TrainConfig.seed, show_default=True)
 @click.option("--device", default=TrainConfig.device, show_default=True, help="cpu | cuda | auto")
