@@ -513,13 +513,17 @@ def test_a_diverged_simulation_ends_the_episode_with_a_warning():
 
     robot = envs.make_team("cheetah-2x3")
     robot.reset(seed=0)
+    for _ in range(3):  # mid-episode
+        robot.step(np.zeros((2, 3)))
     robot._data.qvel[:] = 1e30  # MuJoCo resets such a state silently
-    with pytest.warns(PhysicsDiverged, match="cheetah-2x3: the physics diverged at step 1"):
+    with pytest.warns(PhysicsDiverged, match="cheetah-2x3: the physics diverged at step 4"):
         obs, reward, terminated, truncated = robot.step(np.zeros((2, 3)))
     assert truncated and not terminated and reward == 0.0 and np.isfinite(obs).all()
 
     scenario = envs.make_team("mamujoco:HalfCheetah-6x1")
     scenario.reset(seed=0)
+    for _ in range(3):
+        scenario.step(np.zeros((6, 1)))
     scenario._env.single_agent_env.unwrapped.data.qvel[:] = np.nan
     with pytest.warns(PhysicsDiverged, match="HalfCheetah-6x1: the physics diverged"):
         obs, reward, terminated, truncated = scenario.step(np.zeros((6, 1)))

@@ -19,11 +19,18 @@ def checked_episode_limit(given: int | None, default: int) -> int:
     return int(given)
 
 
-def real_actions(actions, where: Callable[[tuple[int, ...]], str]) -> np.ndarray:
-    """`actions` as a float64 array, refusing what is not a real number (a string, None, a
-    bool, a complex number) instead of letting numpy coerce it; `where(index)` names the
-    agent of an element. Shapes are the caller's to check."""
-    array = _as_array(actions)
+def as_array(actions) -> np.ndarray:
+    """`actions` as given, as an array (no conversion of its values), or ValueError."""
+    try:
+        return np.asarray(actions)
+    except ValueError as error:  # ragged nesting
+        raise ValueError(f"actions are not a rectangular array ({error})") from None
+
+
+def real_actions(array: np.ndarray, where: Callable[[tuple[int, ...]], str]) -> np.ndarray:
+    """An `as_array` of actions as float64, refusing what is not a real number (a string,
+    None, a bool, a complex number) instead of letting numpy coerce it; `where(index)` names
+    the agent of an element. Shapes are the caller's to check, first."""
     if array.dtype.kind in "fiu":
         return array.astype(np.float64, copy=False)
     if array.dtype.kind == "O":
@@ -37,18 +44,6 @@ def real_actions(actions, where: Callable[[tuple[int, ...]], str]) -> np.ndarray
     raise ValueError(
         f"{where(index)}: action must be a real number, got {value!r} ({type(value).__name__})"
     )
-
-
-def action_shape(actions) -> tuple[int, ...]:
-    """The shape of `actions` as given, before any conversion."""
-    return _as_array(actions).shape
-
-
-def _as_array(actions) -> np.ndarray:
-    try:
-        return np.asarray(actions)
-    except ValueError as error:  # ragged nesting
-        raise ValueError(f"actions are not a rectangular array ({error})") from None
 
 
 def _is_real(value) -> bool:
@@ -76,19 +71,11 @@ class PhysicsDiverged(RuntimeWarning):
     episode was truncated there, with reward 0 and non-finite observations zeroed."""
 
 
-_RESET_WARNINGS = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC")
-
-
-def physics_resets(data) -> int:
-    """How often MuJoCo has reset this `mjData` because its state blew up."""
-    import mujoco
-
-    return sum(data.warning[getattr(mujoco.mjtWarning, name)].number for name in _RESET_WARNINGS)
-
-
-def diverged(physics_reset: bool, obs: np.ndarray, reward: float) -> bool:
-    """Whether a step must end the episode: MuJoCo reset the physics, or state went NaN/inf."""
-    return physics_reset or not (math.isfinite(reward) and np.isfinite(obs).all())
+def diverged(time_before: float, time_after: float, reward: float) -> bool:
+    """Whether a step must end the episode. MuJoCo resets a blown-up state silently (NaN or
+    huge positions, velocities or accelerations: `mj_resetData`, simulated time included),
+    so a step whose time did not advance was reset; a NaN/inf reward ends it too."""
+    return time_after <= time_before or not math.isfinite(reward)
 
 
 def end_diverged(env_id: str, step: int, obs: np.ndarray) -> tuple[np.ndarray, float]:
@@ -141,13 +128,13 @@ class ArrayTeam:
     def check_actions(self, actions) -> np.ndarray:
         """`actions` as a float64 `[n_agents, action_width]` array of finite values, or
         ValueError."""
-        shape = action_shape(actions)
-        if shape != (self.n_agents, self.action_width):
+        array = as_array(actions)
+        if array.shape != (self.n_agents, self.action_width):
             raise ValueError(
-                f"actions have shape {shape}, expected (n_agents, action_width) = "
+                f"actions have shape {array.shape}, expected (n_agents, action_width) = "
                 f"({self.n_agents}, {self.action_width}) for {self.env_id}"
             )
-        array = real_actions(actions, lambda index: self.agents[index[0]])
+        array = real_actions(array, lambda index: self.agents[index[0]])
         invalid = invalid_action(array, self.action_type, self.action_size)
         if invalid:
             (row,), problem = invalid

@@ -20,7 +20,6 @@ from mat_sdk.envs.base import (
     checked_episode_limit,
     diverged,
     end_diverged,
-    physics_resets,
     render_failed,
 )
 
@@ -91,13 +90,12 @@ class MaMuJoCoTeam(ArrayTeam):
             name: actions[row, : self.action_widths[row]] for row, name in enumerate(self.agents)
         }
         data = self._env.single_agent_env.unwrapped.data
-        resets = physics_resets(data)  # MuJoCo resets a blown-up simulation silently
+        time_before = data.time
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
         first = self.agents[0]
         packed, reward = self._pack(obs), float(rewards[first])
-        reset = physics_resets(data) != resets
-        if diverged(reset, packed, reward):
+        if diverged(time_before, data.time, reward):
             packed, reward = end_diverged(self.env_id, self._steps, packed)
             return packed, reward, False, True
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit

@@ -9,7 +9,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from mat_sdk.envs.base import invalid_action, real_actions
+from mat_sdk.envs.base import as_array, invalid_action, real_actions
 
 
 class TeamParallelEnv(ParallelEnv):
@@ -68,7 +68,7 @@ class TeamParallelEnv(ParallelEnv):
         if missing:
             raise ValueError(f"no action for agent(s) {missing}; every agent must act each step")
         for row, agent in enumerate(self.agents):
-            action = real_actions(actions[agent], lambda _, agent=agent: agent)
+            action = real_actions(as_array(actions[agent]), lambda _, agent=agent: agent)
             expected = self._act_spaces[agent].shape or (1,)  # a choice: an int
             if action.shape != expected and not (self._discrete and action.shape == ()):
                 shape = "an int" if self._discrete else f"shape {expected}"

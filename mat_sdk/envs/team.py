@@ -22,7 +22,6 @@ from mat_sdk.envs.base import (
     checked_episode_limit,
     diverged,
     end_diverged,
-    physics_resets,
     render_failed,
 )
 from mat_sdk.envs.decomposition import (
@@ -204,7 +203,7 @@ class RobotTeam(ArrayTeam):
         np.minimum(flat, 1.0, out=flat)
         np.maximum(flat, -1.0, out=flat)
         self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
-        resets = physics_resets(self._data)  # MuJoCo resets a blown-up simulation silently
+        time_before = self._data.time
         # dm_control's legacy step: positions and sensors are up to date for the reward.
         mujoco.mj_step2(self._model, self._data)
         if self.substeps > 1:
@@ -212,7 +211,7 @@ class RobotTeam(ArrayTeam):
         mujoco.mj_step1(self._model, self._data)
         self._steps += 1
         obs, reward = self.observe(), float(self._reward(self.physics))
-        if diverged(physics_resets(self._data) != resets, obs, reward):
+        if diverged(time_before, self._data.time, reward):
             obs, reward = end_diverged(self.env_id, self._steps, obs)
             return obs, reward, False, True
         terminated = self._task.get_termination(self.physics) is not None

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from mat_sdk import processes
-from mat_sdk.envs.base import action_shape, invalid_action, real_actions
+from mat_sdk.envs.base import as_array, invalid_action, real_actions
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
 _FIELDS = {  # name: (shape after [num_envs], dtype)
@@ -188,11 +188,11 @@ class VecTeam:
     def step(self, actions: np.ndarray):
         """Step every copy; returns obs, reward, terminated, truncated, info (all arrays)."""
         expected = (self.num_envs, self.n_agents, self.action_width)
-        shape = action_shape(actions)
-        if shape != expected:
+        actions = as_array(actions)
+        if actions.shape != expected:
             raise ValueError(
-                f"actions have shape {shape}, expected (num_envs, n_agents, action_width) = "
-                f"{expected}"
+                f"actions have shape {actions.shape}, expected (num_envs, n_agents, "
+                f"action_width) = {expected}"
             )
         actions = real_actions(actions, lambda i: f"env {i[0]}, {self.agents[i[1]]}")
         invalid = invalid_action(actions, self.action_type, self.action_size)
