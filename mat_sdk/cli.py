@@ -350,7 +350,7 @@ def train(
         given = _given_on_the_command_line(click.get_current_context(), asked)
         overrides = _resume_overrides(ckpt, given)
         trainer = Trainer.load(ckpt, out_dir=out, **overrides)
-        changed = ", ".join(f"{k}={v}" for k, v in overrides.items() if k in given)
+        changed = ", ".join(f"{k}={v}" for k, v in overrides.items())
         click.echo(
             f"resuming {ckpt} at {trainer.progress['steps']:,} steps"
             + (f" (with {changed})" if changed else "")

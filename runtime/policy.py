@@ -123,12 +123,12 @@ class Policy:
         bundle = read_bundle(path, _decode_graphs)
         sessions = {}
         for name, data in bundle.graphs.items():
-            entry = bundle.manifest["graphs"][name]
-            file = bundle.path / name
-            for batched in (False, True):
+            entry, file = bundle.manifest["graphs"][name], bundle.path / name
+            agents = entry.get("agents")
+            for batched in (False, True):  # the same graph, two optimisation settings
                 opened = _open_session(file, entry["opset"], data, threads, providers, batched)
-                _check_graph(file, opened, bundle.manifest, entry.get("agents"))
-                sessions[(entry.get("agents"), batched)] = opened
+                sessions[(agents, batched)] = opened
+            _check_graph(file, opened, bundle.manifest, agents)
         return cls(bundle.path, bundle.manifest, sessions)
 
     def __repr__(self) -> str:
