@@ -38,8 +38,6 @@ GAME = {
     "advantage_std_floor": 0.05,
 }
 GAME_STEPS = 16_000
-RANDOM_GAME_RETURN = 2 / 27  # three independent uniform picks, all different, leader right
-DECENTRALISED_BEST = 1 / 3  # the best fixed guess for the agents that cannot see the target
 
 
 def train_returns(env_id: str, algo: str, steps: int, **options) -> list[float]:
@@ -58,11 +56,6 @@ def game_return(algo: str = "mat", seed: int = 0, **options) -> float:
     """Mean return of the last 5 updates on `coordination-3` with the GAME recipe."""
     returns = train_returns("coordination-3", algo, GAME_STEPS, seed=seed, **GAME, **options)
     return float(np.mean(returns[-5:]))
-
-
-def best_window(returns: Sequence[float], width: int = 5) -> float:
-    """The best mean return over `width` consecutive updates."""
-    return max(float(np.mean(returns[i : i + width])) for i in range(len(returns) - width + 1))
 
 
 def onnx_game_return(seed: int = 0) -> float:
