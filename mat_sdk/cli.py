@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -125,8 +127,8 @@ def quiet_option() -> Callable:
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mat-sdk")
 def main() -> None:
-    """MAT SDK: train Multi-Agent Transformer policies on multi-agent MuJoCo robots,
-    export them to ONNX, and run them without torch.
+    """MAT SDK: train Multi-Agent Transformer policies on multi-agent MuJoCo robots (ours
+    or yours) and PettingZoo envs, export them to ONNX, and run them without torch.
 
     \b
     Start here:
@@ -139,6 +141,9 @@ def main() -> None:
       mat bench envs                    env stepping speed (also: runtime, train, scaling)
       mat bench seeds                   the learning tests' recipes on many seeds
     """
+    # module:function env ids import from the current directory, as `python -m` would
+    if os.getcwd() not in sys.path:
+        sys.path.append(os.getcwd())
 
 
 @main.command()
@@ -150,11 +155,16 @@ def envs() -> None:
     swimmer-N works for any N >= 3 (N - 1 agents); MaMuJoCo scenarios are
     available as mamujoco:<Scenario>-<conf>, e.g. mamujoco:HalfCheetah-6x1;
     coordination-N (any N >= 2) is a one-step discrete game that MAT solves in
-    seconds (act: its number of choices).
+    seconds (act: its number of choices). Ids that installed packages register
+    under the entry-point group mat_sdk.envs are listed too.
     """
     from mat_sdk.envs import list_envs
 
     rows = list_envs()
+    click.echo(
+        "Your own robot or PettingZoo env: an id module:function (e.g. my_robots:arm, "
+        "imported from the current directory or PYTHONPATH), see docs/CUSTOM_ENVS.md.\n"
+    )
     click.echo(f"{'id':<26} {'agents':>6} {'obs':>5} {'act':>4} {'limit':>6}  about")
     for r in rows:
         click.echo(
@@ -323,6 +333,11 @@ def train(
     Writes OUT/checkpoint.pt (every 10 updates and at the end), OUT/metrics.csv,
     OUT/tensorboard/ and OUT/learning_curve.png.
     Example: mat train cheetah-6x1 --steps 2000000 --workers 2 --out runs/cheetah
+
+    \b
+    ENV_ID may name your own env: module:function, a function returning
+    mat_sdk.envs.from_mjcf / from_dm_control / from_pettingzoo (docs/CUSTOM_ENVS.md):
+      PYTHONPATH=examples mat train my_robots:arm --steps 24000 --out runs/arm
 
     \b
     With --ray, --workers counts Ray actors (each steps num-envs/workers copies); needs
@@ -656,7 +671,7 @@ def bench_train(
     "recipes",
     multiple=True,
     help="A learning test's recipe (repeatable) [all]: game-mat, game-mat-dec, game-onnx, "
-    "finetune, finetune-gain, continuous.",
+    "finetune, finetune-gain, continuous, arm, spread, spread-continuous.",
 )
 @click.option("--seeds", default=16, show_default=True, help="Seeds 0..N-1 (or --first).")
 @click.option("--first", default=0, show_default=True, help="The first seed.")

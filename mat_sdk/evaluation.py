@@ -63,15 +63,22 @@ class LoadedPolicy:
         actions = self.act(batch, deterministic, generator)
         return actions[0] if single else actions
 
-    def act(self, obs: np.ndarray, deterministic: bool = True, generator=None) -> np.ndarray:
-        """Raw observations [B, n, obs_dim] -> actions [B, n, A or 1] (numpy)."""
+    def act(
+        self, obs: np.ndarray, deterministic: bool = True, generator=None, available=None
+    ) -> np.ndarray:
+        """Raw observations [B, n, obs_dim] -> actions [B, n, A or 1] (numpy); `available`
+        [B, n, choices] masks the choices an agent may not take (discrete)."""
         if self.obs_norm is not None:
             obs = self.obs_norm.normalize(obs)
         device = next(self.policy.parameters()).device
         tensor = torch.as_tensor(obs, dtype=torch.float32, device=device)
         if generator is not None and generator.device != device:
             generator = None  # a CPU generator cannot drive CUDA sampling
-        actions, _, _ = self.policy.act(tensor, deterministic=deterministic, generator=generator)
+        if available is not None:
+            available = torch.as_tensor(available, dtype=torch.float32, device=device)
+        actions, _, _ = self.policy.act(
+            tensor, available, deterministic=deterministic, generator=generator
+        )
         return actions.cpu().numpy()
 
 
@@ -125,7 +132,8 @@ def evaluate(
         if recorder is not None:
             recorder.reset(seed=seed)
         while np.isnan(returns).any():
-            actions = loaded.act(obs, deterministic, generator)
+            available = vec.available() if vec.action_type == "discrete" else None
+            actions = loaded.act(obs, deterministic, generator, available)
             if recorder is not None and len(frames) < recorder.episode_limit:
                 frames.append(recorder.render())
                 recorder.step(actions[0])

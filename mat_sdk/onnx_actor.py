@@ -35,17 +35,25 @@ class OnnxActor:
         )
         self.session = session(graph.SerializeToString(), batched=True)  # num_envs rows
 
-    def act(self, obs: torch.Tensor, generator: torch.Generator, deterministic: bool = False):
+    def act(
+        self,
+        obs: torch.Tensor,
+        generator: torch.Generator,
+        deterministic: bool = False,
+        available: torch.Tensor | None = None,
+    ):
         """Like `Policy.act` on normalised obs [B, n, D]: actions, log-probs, values."""
         shape = (*obs.shape[:2], self.policy.cfg.action_size)
         noise = torch.zeros(shape) if deterministic else self.policy.dist.noise(shape, generator)
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}
         if self.discrete:
-            feed["available"] = np.ones(shape, np.float32)
+            ones = np.ones(shape, np.float32)
+            feed["available"] = ones if available is None else available.cpu().numpy()
         head = ["logits"] if self.discrete else ["mean", "std"]
         outputs = self.session.run(["actions", *head, "values"], feed)
         actions, *params, values = (torch.from_numpy(out) for out in outputs)
         dist = self.policy.dist.make(params[0], params[1] if len(params) > 1 else None, None)
+        # (the graph's logits are already masked: unavailable choices get UNAVAILABLE_LOGIT)
         log_prob = self.policy.dist.log_prob_entropy(dist, actions)[0]
         device = obs.device
         return actions.to(device), log_prob.to(device), values.to(device)

@@ -7,6 +7,10 @@
   dimension, clipped surrogates are summed over dimensions, then averaged.
 - Value loss: clipped by the same clip parameter, Huber (delta 10), max of clipped and
   unclipped. The official Huber is one-sided (a bug inherited from MAPPO); ours is the real one.
+- Masks, where an env has them (PettingZoo envs): rows of agents that left the episode
+  (`active` 0) weigh nothing in any term, as the official code's active masks; padded
+  action dimensions (`action_dims` 0) are left out of the ratio, the surrogate and the
+  entropy, so they get exactly zero gradient.
 """
 
 from __future__ import annotations
@@ -64,20 +68,47 @@ def ppo_loss(
     entropy_coef: float,
     value_coef: float,
     huber_delta: float,
+    active: Tensor | None = None,
+    action_dims: Tensor | None = None,
 ) -> LossTerms:
-    """Shapes: log-probs/entropy [B, n, A], advantages/values/returns [B, n, 1] (normalised)."""
-    ratio = torch.exp(log_prob - old_log_prob)
+    """Shapes: log-probs/entropy [B, n, A], advantages/values/returns [B, n, 1] (normalised);
+    the masks `active` [B, n, 1] and `action_dims` [B, n, A] (None: everything counts)."""
+    log_ratio = log_prob - old_log_prob
+    if action_dims is not None:  # where, not a product: no inf * 0 in the backward pass
+        log_ratio = torch.where(action_dims > 0, log_ratio, torch.zeros_like(log_ratio))
+    ratio = torch.exp(log_ratio)
     surrogate = torch.min(ratio * advantages, ratio.clamp(1 - clip, 1 + clip) * advantages)
-    policy_loss = -surrogate.sum(-1, keepdim=True).mean()
+    clipped = ((ratio - 1).abs() > clip).float()
+    if action_dims is not None:
+        surrogate = surrogate * action_dims
+    policy_loss = -_mean(surrogate.sum(-1, keepdim=True), active)
     clipped_values = old_values + (values - old_values).clamp(-clip, clip)
-    value_loss = torch.max(
-        F.huber_loss(values, returns, reduction="none", delta=huber_delta),
-        F.huber_loss(clipped_values, returns, reduction="none", delta=huber_delta),
-    ).mean()
-    entropy = entropy.mean()
+    value_loss = _mean(
+        torch.max(
+            F.huber_loss(values, returns, reduction="none", delta=huber_delta),
+            F.huber_loss(clipped_values, returns, reduction="none", delta=huber_delta),
+        ),
+        active,
+    )
+    counted = _product(active, action_dims)
+    entropy = _mean(entropy, counted)
+    clip_fraction = _mean(clipped, counted)
     total = policy_loss - entropy_coef * entropy + value_coef * value_loss
-    clip_fraction = ((ratio - 1).abs() > clip).float().mean()
     return LossTerms(total, policy_loss, value_loss, entropy, clip_fraction)
+
+
+def _mean(x: Tensor, weights: Tensor | None) -> Tensor:
+    """The mean of `x` over the entries that `weights` (0 or 1) keep; None: over all."""
+    if weights is None:
+        return x.mean()
+    weights = weights.expand_as(x)
+    return (x * weights).sum() / weights.sum().clamp_min(1.0)
+
+
+def _product(active: Tensor | None, action_dims: Tensor | None) -> Tensor | None:
+    if active is None:
+        return action_dims
+    return active if action_dims is None else active * action_dims
 
 
 @dataclass(frozen=True)
@@ -103,9 +134,10 @@ def minibatch_loss(
     Agents are evaluated in the order they acted in (`mb["order"]`, where the rollout
     shuffled them); the results come back in canonical order.
     """
-    log_prob, entropy, values = in_agent_order(
-        mb.get("order"), policy.evaluate, mb["obs"], mb["actions"]
-    )
+    inputs = [mb["obs"], mb["actions"]]
+    if "available" in mb:
+        inputs.append(mb["available"])
+    log_prob, entropy, values = in_agent_order(mb.get("order"), policy.evaluate, *inputs)
     return ppo_loss(
         log_prob,
         mb["log_probs"],
@@ -118,4 +150,6 @@ def minibatch_loss(
         coefficients.entropy_coef,
         coefficients.value_coef,
         coefficients.huber_delta,
+        mb.get("active"),
+        mb.get("action_dims"),
     )

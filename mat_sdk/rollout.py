@@ -69,12 +69,39 @@ class RolloutCollector:
         keys = torch.rand(batch, self.env.n_agents, generator=self.shuffle_generator)
         return keys.argsort(dim=1).to(self.device)
 
-    def act(self, obs: Tensor, order: Tensor | None, deterministic: bool = False):
-        """Act in `order` (agents decode in that sequence); results back in canonical order."""
+    def act(
+        self,
+        obs: Tensor,
+        order: Tensor | None,
+        deterministic: bool = False,
+        available: Tensor | None = None,
+    ):
+        """Act in `order` (agents decode in that sequence); results back in canonical order.
+        `available` [B, n, choices] masks the choices an agent may not take (discrete)."""
         act = self.policy.act if self.onnx_actor is None else self.onnx_actor.act
-        return in_agent_order(
-            order, partial(act, deterministic=deterministic, generator=self.generator), obs
-        )
+        act = partial(act, deterministic=deterministic, generator=self.generator)
+        if available is None:
+            return in_agent_order(order, act, obs)
+        return in_agent_order(order, lambda o, a: act(o, available=a), obs, available)
+
+    def masks(self) -> tuple[Tensor | None, Tensor | None]:
+        """The envs' current `active` [E, n, 1] and (discrete) `available` [E, n, choices]
+        masks, or None for envs without them (`ArrayTeam.masks`)."""
+        if not self.env.masks:
+            return None, None
+        active = torch.as_tensor(self.env.active(), device=self.device).unsqueeze(-1)
+        if self.env.action_type != "discrete":
+            return active, None
+        return active, torch.as_tensor(self.env.available(), device=self.device)
+
+    def action_dims(self) -> Tensor | None:
+        """[n, action_size]: 1 on each agent's own action dimensions, 0 on the padding, when
+        agents' continuous action widths differ (else None: nothing to mask)."""
+        widths = np.asarray(self.env.action_widths)
+        if self.env.action_type == "discrete" or (widths == self.env.action_width).all():
+            return None
+        dims = np.arange(self.env.action_width)[None, :] < widths[:, None]
+        return torch.as_tensor(dims, dtype=torch.float32, device=self.device)
 
     @torch.no_grad()
     def collect(self, update_norm: bool = True, keep_raw: bool = False) -> dict[str, Any]:
@@ -89,7 +116,9 @@ class RolloutCollector:
         """
         cfg, env, device = self.config, self.env, self.device
         T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
-        buffers: dict[str, list] = {name: [] for name in (*TRAJECTORY_KEYS, "order")}
+        buffers: dict[str, list] = {
+            name: [] for name in (*TRAJECTORY_KEYS, "order", "active", "available")
+        }
         raw = [self.next_obs]
         bootstrap = torch.zeros(T, E, n, 1, device=device)
         finished: list[float] = []
@@ -98,7 +127,8 @@ class RolloutCollector:
         obs = self.observe(self.next_obs, update=update_norm)
         for t in range(T):
             order = self.agent_order(E)
-            actions, log_probs, values = self.act(obs, order)
+            active, available = self.masks()
+            actions, log_probs, values = self.act(obs, order, available=available)
             next_obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
             for name, value in (
                 ("obs", obs),
@@ -106,16 +136,17 @@ class RolloutCollector:
                 ("log_probs", log_probs),
                 ("values", values),
                 ("order", order),
+                ("active", active),
+                ("available", available),
             ):
                 buffers[name].append(value)
-            for name, flags in (
-                ("rewards", reward),
-                ("terminated", terminated),
-                ("done", terminated | truncated),
-            ):
-                buffers[name].append(
-                    torch.as_tensor(flags, dtype=torch.float32, device=device).view(E, 1, 1)
-                )
+            buffers["rewards"].append(self._flags(reward).view(E, 1, 1))
+            # an agent that left the episode ends its own trace there (the team's goes on)
+            for name, flags in (("terminated", terminated), ("done", terminated | truncated)):
+                flags = self._flags(flags).view(E, 1, 1)
+                if "left" in info:
+                    flags = torch.maximum(flags, self._flags(info["left"]).view(E, n, 1))
+                buffers[name].append(flags)
             if truncated.any():  # bootstrap from the last observation of a time-limited episode
                 final = self.observe(info["final_obs"][truncated])
                 bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
@@ -125,14 +156,21 @@ class RolloutCollector:
                 raw.append(next_obs)
             obs = self.observe(next_obs, update=update_norm and t < T - 1)
         trajectories: dict[str, Any] = {k: torch.stack(buffers[k]) for k in TRAJECTORY_KEYS}
-        if cfg.shuffle_agents:
-            trajectories["order"] = torch.stack(buffers["order"])
+        for key in ("order", "active", "available"):
+            if buffers[key][0] is not None:
+                trajectories[key] = torch.stack(buffers[key])
+        dims = self.action_dims()
+        if dims is not None:
+            trajectories["action_dims"] = dims.expand(T, E, n, -1)
         trajectories["bootstrap"] = bootstrap
         trajectories["last_values"] = self.policy.values(obs)
         trajectories["finished"] = finished
         if keep_raw:
             trajectories["raw_obs"] = np.concatenate(raw)
         return trajectories
+
+    def _flags(self, flags: np.ndarray) -> Tensor:
+        return torch.as_tensor(flags, dtype=torch.float32, device=self.device)
 
     def advantages(self, batch: dict[str, Any], value_norm: ValueNorm) -> dict[str, Tensor]:
         """GAE on the shared reward, per agent, with ValueNorm'd values de-normalised; adds
@@ -167,6 +205,8 @@ class RolloutCollector:
             if k not in ("rewards", "terminated", "done")
         }
         advantages = flat["advantages"]
-        scale = advantages.std().clamp_min(std_floor) + 1e-5
-        flat["advantages"] = (advantages - advantages.mean()) / scale
+        # over the agents in their episode only, as the official code (its active masks)
+        counted = advantages if "active" not in flat else advantages[flat["active"] > 0]
+        scale = counted.std().clamp_min(std_floor) + 1e-5
+        flat["advantages"] = (advantages - counted.mean()) / scale
         return flat

@@ -21,9 +21,10 @@ from typing import Any
 
 import torch
 
-from mat_sdk import checkpoint
+from mat_sdk import checkpoint, envs
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
+from mat_sdk.envs import Env
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, Policy, build_policy
@@ -41,12 +42,16 @@ class Trainer:
 
     def __init__(
         self,
-        env: str = "cheetah-6x1",
+        env: Env = "cheetah-6x1",
         algo: str = "mat",
         out_dir: str | Path | None = None,
         **options: Any,
     ):
-        self.config = TrainConfig.for_algo(algo, env=env, **options)
+        """`env`: an env id (`mat envs`, or `module:function`), or a spec from
+        `envs.from_dm_control` / `from_mjcf` / `from_pettingzoo` (or a function returning
+        one). The checkpoint records the id; a spec's id is known only in this process, a
+        module-level function's `module:function` id everywhere."""
+        self.config = TrainConfig.for_algo(algo, env=envs.id_of(env), **options)
         cfg = self.config
         self.device = cfg.resolve_device()
         torch.manual_seed(cfg.seed)
@@ -222,7 +227,7 @@ class Trainer:
     def from_pretrained(
         cls,
         checkpoint_path: str | Path,
-        env: str | None = None,
+        env: Env | None = None,
         faults: dict[str, str] | None = None,
         reset_optimizer: bool = True,
         lr: float | None = None,
@@ -250,7 +255,7 @@ class Trainer:
         if lr is not None:
             train["lr"] = lr
         algo, trained_env = train.pop("algo"), train.pop("env")
-        env = env or trained_env
+        env = trained_env if env is None else envs.id_of(env)
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
             check_compatible(build_policy(ModelConfig.from_dict(model)), trainer.env, env)

@@ -132,13 +132,20 @@ CONTINUOUS_STEPS = 12_800
 
 
 def random_team_return(env_id: str, episodes: int = 16, **options) -> float:
-    """Mean episode return of uniformly random actions."""
+    """Mean episode return of uniformly random actions (discrete: random available choices)."""
     vec = envs.make_vec(env_id, episodes, seed=100, **options)
     vec.reset()
     rng = np.random.default_rng(0)
     returns: list[float] = []
+    shape = (episodes, vec.n_agents, vec.action_width)
     while len(returns) < episodes:
-        _, _, _, _, info = vec.step(rng.uniform(-1, 1, (episodes, vec.n_agents, vec.action_width)))
+        if vec.action_type == "discrete":
+            available = vec.available() if vec.masks else np.ones((*shape[:2], vec.action_size))
+            scores = rng.random(available.shape) * available
+            actions = scores.argmax(-1)[..., None].astype(float)
+        else:
+            actions = rng.uniform(-1, 1, shape)
+        _, _, _, _, info = vec.step(actions)
         returns += info["episode_return"][info["done"]].tolist()
     vec.close()
     return float(np.mean(returns))
@@ -156,6 +163,53 @@ def continuous_return(seed: int = 0) -> float:
 def continuous_bound() -> float:
     """What the continuous run must beat: 3x a random team's return, and at least 2."""
     return max(2.0, 3 * random_team_return(CONTINUOUS_ENV, **CONTINUOUS_OPTIONS))
+
+
+# Your own envs (docs/CUSTOM_ENVS.md): `examples/my_robots.py` (a custom MJCF arm) and
+# `examples/mpe_envs.py` (MPE through PettingZoo), by their module:function ids.
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+ARM_ENV = "my_robots:arm"
+ARM = {**CONTINUOUS, "lr": 3e-3, "ppo_epochs": 10, "num_minibatches": 2}
+ARM_STEPS = 24_000
+SPREAD = {
+    "num_envs": 16,
+    "rollout_length": 25,
+    "lr": 5e-4,
+    "ppo_epochs": 5,
+    "num_minibatches": 2,
+    "clip": 0.2,
+    "entropy_coef": 0.01,
+}
+SPREAD_STEPS = 16_000
+ARM_FRACTION = 0.8  # returns are negative: 0.8 x random is better than random
+SPREAD_FRACTION = 0.9
+
+
+def with_examples() -> None:
+    """Make the example env modules importable (they live beside the package, not in it)."""
+    import sys
+
+    if str(EXAMPLES) not in sys.path:
+        sys.path.insert(0, str(EXAMPLES))
+
+
+def arm_return(seed: int = 0) -> float:
+    """MAT on the custom arm: mean return of the last 3 updates."""
+    with_examples()
+    return float(np.nanmean(train_returns(ARM_ENV, "mat", ARM_STEPS, seed=seed, **ARM)[-3:]))
+
+
+def spread_return(seed: int = 0, env_id: str = "mpe_envs:spread") -> float:
+    """MAT on MPE simple_spread through from_pettingzoo: mean return of the last 3 updates."""
+    with_examples()
+    returns = train_returns(env_id, "mat", SPREAD_STEPS, seed=seed, **SPREAD)
+    return float(np.nanmean(returns[-3:]))
+
+
+def beats_random(env_id: str, fraction: float) -> float:
+    """A bound for negative-return envs: `fraction` of a random team's (negative) return."""
+    with_examples()
+    return fraction * random_team_return(env_id)
 
 
 @dataclass(frozen=True)
@@ -199,6 +253,24 @@ RECIPES: dict[str, Recipe] = {
         continuous_bound,
         True,
         "a short cheetah-2x3 run beats max(2, 3x a random team)",
+    ),
+    "arm": Recipe(
+        arm_return,
+        lambda: beats_random(ARM_ENV, ARM_FRACTION),
+        True,
+        f"MAT on the custom MJCF arm: last-3 return >= {ARM_FRACTION} x a random team's",
+    ),
+    "spread": Recipe(
+        spread_return,
+        lambda: beats_random("mpe_envs:spread", SPREAD_FRACTION),
+        True,
+        f"MAT on MPE simple_spread (discrete): last-3 >= {SPREAD_FRACTION} x a random team's",
+    ),
+    "spread-continuous": Recipe(
+        lambda seed: spread_return(seed, "mpe_envs:spread_continuous"),
+        lambda: beats_random("mpe_envs:spread_continuous", SPREAD_FRACTION),
+        True,
+        f"the same with continuous actions: last-3 >= {SPREAD_FRACTION} x a random team's",
     ),
 }
 

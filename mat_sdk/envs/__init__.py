@@ -21,7 +21,6 @@ are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueE
 
 from __future__ import annotations
 
-import inspect
 import logging
 import os
 from collections.abc import Mapping
@@ -40,83 +39,86 @@ class _QuietSuiteModels(logging.Filter):
 
 logging.getLogger("absl").addFilter(_QuietSuiteModels())
 
-from mat_sdk.envs.games import CoordinationGame
-from mat_sdk.envs.mamujoco import PREFIX as _MAMUJOCO
-from mat_sdk.envs.mamujoco import MaMuJoCoTeam
 from mat_sdk.envs.parallel import TeamParallelEnv
-from mat_sdk.envs.robots import env_ids, spec_for
+from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
+from mat_sdk.envs.registry import (
+    ENTRY_POINT_GROUP,
+    EnvSpec,
+    build_team,
+    id_of,
+    installed_ids,
+    register,
+    resolve,
+)
+from mat_sdk.envs.robots import env_ids
+from mat_sdk.envs.sources import RobotSpec, from_dm_control, from_mjcf
 from mat_sdk.envs.team import RobotTeam
 from mat_sdk.envs.vector import TeamFactory, VecTeam
 
 __all__ = [
+    "ENTRY_POINT_GROUP",
+    "Env",
+    "EnvSpec",
+    "PettingZooSpec",
+    "PettingZooTeam",
+    "RobotSpec",
     "RobotTeam",
     "TeamParallelEnv",
     "VecTeam",
+    "from_dm_control",
+    "from_mjcf",
+    "from_pettingzoo",
+    "id_of",
     "list_envs",
     "make",
     "make_team",
     "make_vec",
+    "register",
+    "resolve",
 ]
 
-
-def _build_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):
-    if env_id.startswith("coordination-"):
-        kind, first = CoordinationGame, env_id
-    elif env_id.startswith(_MAMUJOCO):
-        kind, first = MaMuJoCoTeam, env_id
-    else:
-        kind, first = RobotTeam, spec_for(env_id)
-    _check_options(kind, env_id, options)
-    return kind(first, faults, **options)
+Env = str | EnvSpec
 
 
-def _check_options(kind: type, env_id: str, options: Mapping[str, Any]) -> None:
-    """Refuse an option the env does not take, naming it and the ones it does."""
-    valid = [
-        name
-        for name, p in inspect.signature(kind.__init__).parameters.items()
-        if p.kind is inspect.Parameter.KEYWORD_ONLY
-    ]
-    unknown = sorted(set(options) - set(valid))
-    if unknown:
-        raise ValueError(
-            f"unknown env option(s) {unknown} for {env_id}; it takes {', '.join(valid)}"
-        )
-
-
-def make_team(env_id: str, faults: Mapping[str, str] | None = None, **options: Any):
+def make_team(env: Env, faults: Mapping[str, str] | None = None, **options: Any):
     """The array-level team (`step(actions [n, action_width])`), the fastest single env."""
-    return _build_team(env_id, faults, **options)
+    return build_team(env, faults, **options)
 
 
 def make(
-    env_id: str,
+    env: Env,
     faults: Mapping[str, str] | None = None,
     render_mode: str | None = None,
     **options: Any,
 ) -> TeamParallelEnv:
-    """A PettingZoo `ParallelEnv` for `env_id` (see `list_envs()`)."""
-    return TeamParallelEnv(_build_team(env_id, faults, **options), render_mode=render_mode)
+    """A PettingZoo `ParallelEnv` for an env id (see `list_envs()`) or spec."""
+    return TeamParallelEnv(build_team(env, faults, **options), render_mode=render_mode)
 
 
 def make_vec(
-    env_id: str,
+    env: Env,
     num_envs: int,
     workers: int = 0,
     seed: int = 0,
     faults: Mapping[str, str] | None = None,
     **options: Any,
 ) -> VecTeam:
-    """`num_envs` autoresetting copies stepped as arrays; `workers` > 0 uses processes."""
-    factory = TeamFactory(_build_team, {"env_id": env_id, "faults": dict(faults or {}), **options})
+    """`num_envs` autoresetting copies stepped as arrays; `workers` > 0 uses processes.
+
+    Worker processes get the resolved spec (pickled), so an env registered only in this
+    process works with workers as long as its functions are importable (module-level)."""
+    spec = resolve(env)
+    factory = TeamFactory(build_team, {"env": spec, "faults": dict(faults or {}), **options})
     return VecTeam(factory, num_envs, workers=workers, seed=seed)
 
 
 def list_envs() -> list[dict[str, Any]]:
-    """One row per env id: agents, obs size, action size, episode limit, description."""
+    """One row per env id (built-in, then installed packages'): agents, obs size, action
+    size, episode limit, description."""
     rows = []
-    for env_id in [*env_ids(), f"{_MAMUJOCO}HalfCheetah-6x1", "coordination-3"]:
-        team = _build_team(env_id)
+    built_in = [*env_ids(), "mamujoco:HalfCheetah-6x1", "coordination-3"]
+    for env_id in [*built_in, *installed_ids()]:
+        team = build_team(env_id)
         spec = getattr(team, "spec", None)
         rows.append(
             {
@@ -125,7 +127,10 @@ def list_envs() -> list[dict[str, Any]]:
                 "obs": team.obs_dim,
                 "act": team.action_size,  # discrete: the number of choices
                 "episode_limit": team.episode_limit,
-                "about": spec.description if spec else team.description,
+                "about": getattr(spec, "description", "") or team.description,
             }
         )
+        close = getattr(team, "close", None)
+        if close:
+            close()
     return rows

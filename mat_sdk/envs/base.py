@@ -13,6 +13,8 @@ import numpy as np
 def checked_episode_limit(given: int | None, default: int) -> int:
     """The episode length to truncate at: `given` (>= 1), or the env's own `default`."""
     if given is None:
+        if not math.isfinite(default):
+            raise ValueError("the environment has no time limit; set episode_limit")
         return int(default)
     if isinstance(given, bool) or not isinstance(given, int | np.integer) or given < 1:
         raise ValueError(f"episode_limit must be an integer >= 1, got {given!r}")
@@ -115,6 +117,9 @@ class ArrayTeam:
     action_type: str
     action_size: int  # continuous: action_width; discrete: the number of choices
     control_timestep: float  # simulated seconds per env step (robots; MaMuJoCo)
+    # Teams whose agents may leave mid-episode or have unavailable choices set `masks` and
+    # keep `active [n]` and `available [n, action_size]` up to date (PettingZoo envs).
+    masks: bool = False
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
         """Apply `actions [n_agents, action_width]`; returns obs, reward, terminated, truncated.

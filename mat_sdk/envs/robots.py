@@ -8,7 +8,6 @@ form a team member); the joints each agent drives and observes are derived from 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,28 +15,36 @@ from dm_control import suite
 from dm_control.rl import control
 from dm_control.suite import swimmer
 
+from mat_sdk.envs.sources import RobotSpec
+
 
 @dataclass(frozen=True)
-class RobotSpec:
-    """How to build one multi-agent robot."""
+class SuiteTask:
+    """A dm_control suite task as a picklable env factory: `SuiteTask("cheetah", "run")(seed)`."""
 
-    env_id: str
     domain: str
     task: str
-    groups: tuple[tuple[str, ...], ...]  # actuator names, one tuple per agent
-    variable_count: bool = False  # a family served by one policy for any agent count
-    root_features: bool = True  # root height/orientation/velocity in every observation
-    task_features: Callable[[control.Physics], np.ndarray] | None = None
-    # The suite task's reward in closed form, for speed; a test holds it equal to the task's.
-    fast_reward: Callable[[control.Physics], float] | None = None
-    description: str = ""
 
-    def load(self, seed: int | None, task: str | None = None) -> control.Environment:
-        """Build the dm_control environment (physics + task) with its own random stream."""
+    def __call__(self, seed: int | None) -> control.Environment:
         random = np.random.RandomState(seed)
-        if self.domain == "swimmer":
-            return swimmer.swimmer(n_links=len(self.groups) + 1, random=random)
-        return suite.load(self.domain, task or self.task, task_kwargs={"random": random})
+        return suite.load(self.domain, self.task, task_kwargs={"random": random})
+
+    def with_task(self, task: str) -> SuiteTask:
+        return SuiteTask(self.domain, task)
+
+
+@dataclass(frozen=True)
+class SwimmerTask:
+    """dm_control's swimmer with `links` links, as a picklable env factory."""
+
+    links: int
+
+    def __call__(self, seed: int | None) -> control.Environment:
+        return swimmer.swimmer(n_links=self.links, random=np.random.RandomState(seed))
+
+
+def _suite(env_id: str, domain: str, task: str, groups, **fields) -> RobotSpec:
+    return RobotSpec(env_id, SuiteTask(domain, task), groups, **fields)
 
 
 def _one_each(*names: str) -> tuple[tuple[str, ...], ...]:
@@ -64,7 +71,7 @@ _LEGS = ("front_left", "front_right", "back_right", "back_left")
 _FIXED: dict[str, RobotSpec] = {
     spec.env_id: spec
     for spec in [
-        RobotSpec(
+        _suite(
             "cheetah-6x1",
             "cheetah",
             "run",
@@ -72,7 +79,7 @@ _FIXED: dict[str, RobotSpec] = {
             fast_reward=_cheetah_run_reward,
             description="one agent per joint",
         ),
-        RobotSpec(
+        _suite(
             "cheetah-2x3",
             "cheetah",
             "run",
@@ -80,34 +87,34 @@ _FIXED: dict[str, RobotSpec] = {
             fast_reward=_cheetah_run_reward,
             description="back leg, front leg",
         ),
-        RobotSpec(
+        _suite(
             "walker-6x1", "walker", "walk", _one_each(*_WALKER), description="one agent per joint"
         ),
-        RobotSpec(
+        _suite(
             "walker-2x3",
             "walker",
             "walk",
             (_WALKER[:3], _WALKER[3:]),
             description="right leg, left leg",
         ),
-        RobotSpec(
+        _suite(
             "hopper-4x1", "hopper", "hop", _one_each(*_HOPPER), description="one agent per joint"
         ),
-        RobotSpec(
+        _suite(
             "hopper-2x2",
             "hopper",
             "hop",
             (_HOPPER[:2], _HOPPER[2:]),
             description="waist+hip, knee+ankle",
         ),
-        RobotSpec(
+        _suite(
             "quadruped-4x3",
             "quadruped",
             "walk",
             tuple((f"yaw_{leg}", f"lift_{leg}", f"extend_{leg}") for leg in _LEGS),
             description="one agent per leg (lift/extend are tendons over several joints)",
         ),
-        RobotSpec(
+        _suite(
             "humanoid-limbs",
             "humanoid",
             "walk",
@@ -129,6 +136,7 @@ _FIXED: dict[str, RobotSpec] = {
 
 _SWIMMER = re.compile(r"swimmer-(\d+)$")
 SWIMMER_EXAMPLES = ("swimmer-3", "swimmer-6", "swimmer-15")
+FAMILIES = ("swimmer-N (N >= 3)",)
 
 
 def swimmer_spec(links: int) -> RobotSpec:
@@ -136,8 +144,7 @@ def swimmer_spec(links: int) -> RobotSpec:
         raise ValueError(f"swimmer-N needs N >= 3 links (N - 1 agents), got {links}")
     return RobotSpec(
         f"swimmer-{links}",
-        "swimmer",
-        "swimmer",
+        SwimmerTask(links),
         _one_each(*(f"motor_{i}" for i in range(links - 1))),
         variable_count=True,
         root_features=False,
@@ -151,13 +158,9 @@ def env_ids() -> list[str]:
     return [*_FIXED, *SWIMMER_EXAMPLES]
 
 
-def spec_for(env_id: str) -> RobotSpec:
+def spec_for(env_id: str) -> RobotSpec | None:
+    """The built-in robot of that id, or None."""
     if env_id in _FIXED:
         return _FIXED[env_id]
     match = _SWIMMER.match(env_id)
-    if match:
-        return swimmer_spec(int(match.group(1)))
-    valid = ", ".join(
-        [*_FIXED, "swimmer-N (N >= 3)", "mamujoco:<Scenario>-<conf>", "coordination-N"]
-    )
-    raise ValueError(f"unknown environment id {env_id!r}; valid ids: {valid}")
+    return swimmer_spec(int(match.group(1))) if match else None

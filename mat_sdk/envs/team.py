@@ -13,6 +13,7 @@ shared features (root height/orientation/velocities, task features) | one-hot ag
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -32,14 +33,12 @@ from mat_sdk.envs.decomposition import (
     root_feature_indices,
     root_joints,
 )
-from mat_sdk.envs.robots import RobotSpec
+
+if TYPE_CHECKING:
+    from mat_sdk.envs.sources import RobotSpec
 
 FAULT_MODES = ("zero", "remove")
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # includes ctrl and the solver's warmstart
-
-
-def agent_name(index: int) -> str:
-    return f"agent_{index}"
 
 
 class RobotTeam(ArrayTeam):
@@ -54,10 +53,11 @@ class RobotTeam(ArrayTeam):
         *,
         seed: int | None = None,
         agent_id: bool | None = None,
-        hops: int = 1,
+        hops: int | None = None,
         episode_limit: int | None = None,
         task: str | None = None,
     ):
+        """Options left as None take the spec's (`RobotSpec.hops`, ...)."""
         self.spec = spec
         self.env_id = spec.env_id
         self._env = spec.load(seed, task)
@@ -66,15 +66,17 @@ class RobotTeam(ArrayTeam):
         self._model, self._data = self.physics.model.ptr, self.physics.data.ptr
         self.control_timestep = self._env.control_timestep()
         self.substeps = round(self.control_timestep / self._model.opt.timestep)
-        self.episode_limit = checked_episode_limit(episode_limit, self._env._step_limit)
+        limit = spec.episode_limit if episode_limit is None else episode_limit
+        self.episode_limit = checked_episode_limit(limit, self._env._step_limit)
+        agent_id = spec.agent_id if agent_id is None else agent_id
         self.agent_id = (not spec.variable_count) if agent_id is None else bool(agent_id)
 
-        self.team = decompose(self._model, spec.groups, hops)
-        self.possible_agents = [agent_name(i) for i in range(len(self.team))]
+        self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
+        self.possible_agents = spec.names()
         self.faults = dict(faults or {})
         zeroed, removed = self._resolve_faults(self.faults)
         self.active = [i for i in range(len(self.team)) if i not in removed]
-        self.agents = [agent_name(i) for i in self.active]
+        self.agents = [self.possible_agents[i] for i in self.active]
         self.n_agents = len(self.active)
         self.action_widths = np.array([len(self.team[i].actuators) for i in self.active])
         self.action_width = max(len(a.actuators) for a in self.team)
@@ -191,7 +193,7 @@ class RobotTeam(ArrayTeam):
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
         """Start an episode; a seed restarts the task's random stream (initial pose, target)."""
-        if seed is not None:
+        if seed is not None and hasattr(self._task, "_random"):  # suite tasks' random stream
             self._task._random = np.random.RandomState(seed)
         with self.physics.reset_context():
             self._task.initialize_episode(self.physics)

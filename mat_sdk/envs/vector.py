@@ -31,6 +31,10 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "truncated": ((), np.bool_),
     "episode_return": ((), np.float64),
     "episode_length": ((), np.int64),
+    # teams with masks (`ArrayTeam.masks`): who is in the episode, and what each may choose
+    "active": (("n",), np.float32),
+    "left": (("n",), np.bool_),
+    "available": (("n", "choices"), np.float32),
 }
 
 
@@ -63,8 +67,16 @@ class _EnvSlice:
     def reset(self, seeds: list[int | None]) -> None:
         for k, (team, seed) in enumerate(zip(self.teams, seeds, strict=True)):
             self.buffers.obs[self.start + k] = team.reset(seed=seed)
+            self._read_masks(k, team)
         self._returns[:] = 0
         self._lengths[:] = 0
+
+    def _read_masks(self, k: int, team) -> None:
+        if team.masks:
+            i = self.start + k
+            self.buffers.left[i] = (self.buffers.active[i] > 0) & (team.active == 0)
+            self.buffers.active[i] = team.active
+            self.buffers.available[i] = team.available
 
     def step(self) -> None:
         b = self.buffers
@@ -79,9 +91,11 @@ class _EnvSlice:
                 b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
                 self._returns[k], self._lengths[k] = 0.0, 0
                 obs = team.reset()
+                b.active[i] = 1.0  # a new episode: nobody has left it
             else:
                 b.episode_return[i], b.episode_length[i] = np.nan, 0
             b.obs[i] = obs
+            self._read_masks(k, team)
 
     def get_state(self) -> list[dict]:
         return [
@@ -89,6 +103,7 @@ class _EnvSlice:
                 "team": team.get_state(),
                 "return": float(self._returns[k]),
                 "length": int(self._lengths[k]),
+                "left": self.buffers.left[self.start + k].copy(),
             }
             for k, team in enumerate(self.teams)
         ]
@@ -97,6 +112,8 @@ class _EnvSlice:
         for k, (team, state) in enumerate(zip(self.teams, states, strict=True)):
             team.set_state(state["team"])
             self._returns[k], self._lengths[k] = state["return"], state["length"]
+            self._read_masks(k, team)
+            self.buffers.left[self.start + k] = state.get("left", False)
 
 
 def _worker(
@@ -120,6 +137,7 @@ _TEAM_ATTRIBUTES = (
     "action_type",
     "state_dim",
     "episode_limit",
+    "masks",
 )
 
 
@@ -159,6 +177,7 @@ class VecTeam:
             "n": self.n_agents,
             "obs": self.obs_dim,
             "act": self.action_width,
+            "choices": self.action_size,
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
@@ -209,7 +228,17 @@ class VecTeam:
             "episode_length": b.episode_length.copy(),
             "done": done,
         }
+        if self.masks:
+            info["left"] = b.left.copy()  # agents that left the episode in this step
         return b.obs.copy(), b.reward.copy(), b.terminated.copy(), b.truncated.copy(), info
+
+    def active(self) -> np.ndarray | None:
+        """Which agents are in each copy's episode now, [E, n] (teams with masks), else None."""
+        return self._buffers.active.copy() if self.masks else None
+
+    def available(self) -> np.ndarray | None:
+        """Which choices each agent may take now, [E, n, choices] (teams with masks)."""
+        return self._buffers.available.copy() if self.masks else None
 
     def get_state(self) -> list[dict]:
         """Per copy: its full simulation state and episode progress (picklable numpy)."""

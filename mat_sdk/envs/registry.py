@@ -1,0 +1,171 @@
+"""Env ids and what they build: one lookup for every tool (trainer, eval, export, controller).
+
+An id is, in the order tried:
+- one registered in this process (`register`, or an env object given to `Trainer`);
+- a built-in robot (`cheetah-6x1`, `swimmer-N`, ...), `mamujoco:<Scenario>-<conf>`,
+  `coordination-N`;
+- one an installed package registers under the entry-point group `mat_sdk.envs`
+  (`[project.entry-points."mat_sdk.envs"] arm-3x2 = "my_robots:arm_3x2"`);
+- `module:function` (Gymnasium's convention): the function, called with no arguments,
+  returns what `from_dm_control`, `from_mjcf` or `from_pettingzoo` return.
+Checkpoints and bundles record the id, so every tool rebuilds the same env from it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any
+
+from mat_sdk.envs.games import CoordinationGame
+from mat_sdk.envs.mamujoco import PREFIX as MAMUJOCO
+from mat_sdk.envs.mamujoco import MaMuJoCoTeam
+from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam
+from mat_sdk.envs.robots import FAMILIES, env_ids, spec_for
+from mat_sdk.envs.sources import RobotSpec
+from mat_sdk.envs.team import RobotTeam
+
+ENTRY_POINT_GROUP = "mat_sdk.envs"
+_REGISTERED: dict[str, Any] = {}
+
+
+@dataclass(frozen=True)
+class TeamClassSpec:
+    """A built-in family that is a team class of its own (MaMuJoCo, the coordination game)."""
+
+    env_id: str
+    kind: type
+
+    def build(self, faults: Mapping[str, str] | None = None, **options: Any):
+        return self.kind(self.env_id, faults, **options)
+
+
+EnvSpec = RobotSpec | PettingZooSpec | TeamClassSpec
+_TEAM_OF = {RobotSpec: RobotTeam, PettingZooSpec: PettingZooTeam}
+
+
+def register(env_id: str, source: EnvSpec | Callable[[], EnvSpec]) -> str:
+    """Make `env_id` name `source` (a spec, or a function returning one) in this process."""
+    _REGISTERED[env_id] = source
+    return env_id
+
+
+def id_of(env: str | EnvSpec | Callable[[], EnvSpec]) -> str:
+    """The id to record for `env`: an id as given; for a module-level function, its
+    `module:function` id (any process can rebuild it); for a spec, its own id, registered
+    in this process (other processes cannot rebuild it: give tools a `module:function`)."""
+    if isinstance(env, str):
+        return env
+    if callable(env) and not isinstance(env, EnvSpec):
+        module, name = getattr(env, "__module__", None), getattr(env, "__qualname__", "")
+        if module and module != "__main__" and name.isidentifier():
+            importable = f"{module}:{name}"
+            if _imported(importable) is env:
+                return importable
+        env = _checked(env(), repr(env))
+    return register(env.env_id, env)
+
+
+def resolve(env_id: str | EnvSpec) -> EnvSpec:
+    """The spec an id names, or ValueError saying what was looked for."""
+    if isinstance(env_id, EnvSpec):
+        return env_id
+    if not isinstance(env_id, str):
+        raise ValueError(f"an env is an id string or an env spec, got {env_id!r}")
+    if env_id in _REGISTERED:
+        return _named(_REGISTERED[env_id], env_id)
+    robot = spec_for(env_id)
+    if robot is not None:
+        return robot
+    if env_id.startswith(MAMUJOCO):
+        return TeamClassSpec(env_id, MaMuJoCoTeam)
+    if env_id.startswith("coordination-"):
+        return TeamClassSpec(env_id, CoordinationGame)
+    installed = _entry_points().get(env_id)
+    if installed is not None:
+        return _named(installed.load(), env_id)
+    if ":" in env_id:
+        return _named(_imported(env_id), env_id)
+    raise ValueError(
+        f"unknown environment id {env_id!r}; valid ids: {', '.join(env_ids())}, "
+        f"{', '.join(FAMILIES)}, mamujoco:<Scenario>-<conf>, coordination-N, "
+        "module:function (a function returning from_dm_control / from_mjcf / from_pettingzoo), "
+        f"or one registered under the entry-point group {ENTRY_POINT_GROUP!r}"
+    )
+
+
+def build_team(env: str | EnvSpec, faults: Mapping[str, str] | None = None, **options: Any):
+    """The team an id or spec names, with the options its team class takes."""
+    spec = resolve(env)
+    kind = spec.kind if isinstance(spec, TeamClassSpec) else _TEAM_OF[type(spec)]
+    _check_options(kind, spec.env_id, options)
+    return spec.build(faults, **options)
+
+
+def installed_ids() -> list[str]:
+    """Ids that installed packages register under the entry-point group `mat_sdk.envs`."""
+    return sorted(_entry_points())
+
+
+def _entry_points() -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def _imported(env_id: str):
+    module_name, _, attribute = env_id.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as error:
+        if error.name and module_name.startswith(error.name):  # the module itself, not its import
+            raise ValueError(
+                f"env id {env_id!r}: no module {module_name!r} to import (is it installed, or "
+                "its directory on PYTHONPATH? An env given to Trainer as an object is known "
+                "only in that process: give tools a module:function id)"
+            ) from None
+        raise
+    target: Any = module
+    for part in attribute.split("."):
+        if not hasattr(target, part):
+            raise ValueError(f"env id {env_id!r}: module {module_name!r} has no {attribute!r}")
+        target = getattr(target, part)
+    return target
+
+
+def _named(source: Any, env_id: str) -> EnvSpec:
+    """`source` (a spec, or a function returning one) as the spec of `env_id`."""
+    if callable(source) and not isinstance(source, EnvSpec):
+        try:
+            inspect.signature(source).bind()
+        except TypeError:
+            raise ValueError(
+                f"{env_id} must name a function of no arguments that returns what "
+                "mat_sdk.envs.from_dm_control, from_mjcf or from_pettingzoo return"
+            ) from None
+        source = source()
+    return _checked(source, env_id).renamed(env_id)
+
+
+def _checked(spec: Any, where: str) -> EnvSpec:
+    if not isinstance(spec, RobotSpec | PettingZooSpec):
+        raise ValueError(
+            f"{where} must give what mat_sdk.envs.from_dm_control, from_mjcf or from_pettingzoo "
+            f"return, got {type(spec).__name__}"
+        )
+    return spec
+
+
+def _check_options(kind: type, env_id: str, options: Mapping[str, Any]) -> None:
+    """Refuse an option the env does not take, naming it and the ones it does."""
+    valid = [
+        name
+        for name, p in inspect.signature(kind.__init__).parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    ]
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise ValueError(
+            f"unknown env option(s) {unknown} for {env_id}; it takes {', '.join(valid)}"
+        )

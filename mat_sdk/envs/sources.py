@@ -1,0 +1,258 @@
+"""Your own robot as a team: any dm_control environment, or a bare MJCF model plus a reward.
+
+    spec = envs.from_mjcf("arm.xml", {"shoulder": ["shoulder"], "hand": ["elbow", "wrist"]},
+                          reward=reach_reward)
+    team = spec.build(seed=0)                      # an ArrayTeam, like any built-in robot
+    Trainer(spec)                                  # or give tools the id "my_module:my_function"
+
+A layout lists the agents, each a list of actuator names. Everything else (driven joints,
+neighbourhoods, root features, faults, state, rendering) is derived from the compiled model,
+the same way for the built-in robots, which are `RobotSpec`s too (`robots.py`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
+from dm_control.suite import base
+
+Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """How to build one multi-agent robot: its dm_control environment and its agents.
+
+    `env_factory(seed)` returns a fresh `control.Environment` whose task draws its randomness
+    from `seed`. It must be picklable (a module-level function or class instance) for env
+    worker processes to build their own copies.
+    """
+
+    env_id: str
+    env_factory: Callable[[int | None], control.Environment]
+    groups: tuple[tuple[str, ...], ...]  # actuator names, one tuple per agent
+    agent_names: tuple[str, ...] = ()  # default agent_0, agent_1, ...
+    hops: int = 1  # neighbourhood radius in the kinematic tree
+    agent_id: bool | None = None  # one-hot id; None: on, except for variable-count families
+    episode_limit: int | None = None  # None: the environment's own time limit
+    variable_count: bool = False  # a family served by one policy for any agent count
+    root_features: bool = True  # root height/orientation/velocity in every observation
+    task_features: Callable[[control.Physics], np.ndarray] | None = None
+    # The task's reward in closed form, for speed; a test holds it equal to the task's.
+    fast_reward: Callable[[control.Physics], float] | None = None
+    description: str = ""
+
+    def names(self) -> list[str]:
+        return list(self.agent_names) or [f"agent_{i}" for i in range(len(self.groups))]
+
+    def load(self, seed: int | None, task: str | None = None) -> control.Environment:
+        """Build the dm_control environment (physics + task) with its own random stream."""
+        factory = self.env_factory
+        if task is not None:
+            with_task = getattr(factory, "with_task", None)
+            if with_task is None:
+                raise ValueError(
+                    f"{self.env_id}: the task option picks another dm_control suite task of a "
+                    "built-in robot; this robot's environment is its own factory's"
+                )
+            factory = with_task(task)
+        return factory(seed)
+
+    def build(self, faults: Mapping[str, str] | None = None, **options: Any):
+        """The team (`RobotTeam`); options as `mat_sdk.envs.make_team` takes them."""
+        from mat_sdk.envs.team import RobotTeam
+
+        return RobotTeam(self, faults, **options)
+
+    def renamed(self, env_id: str) -> RobotSpec:
+        return replace(self, env_id=env_id)
+
+
+def from_dm_control(
+    env_factory: Callable[[int | None], control.Environment],
+    layout: Layout,
+    *,
+    hops: int = 1,
+    agent_id: bool = True,
+    episode_limit: int | None = None,
+    root_features: bool = True,
+    env_id: str | None = None,
+    description: str = "",
+) -> RobotSpec:
+    """A team over any dm_control environment: a suite task, or your own Task on your model.
+
+    `layout` lists the agents' actuator names (a list of lists, or a dict agent name ->
+    actuator names). It is checked against the model now; a mistake raises `ValueError`.
+    """
+    names, groups = _split_layout(layout)
+    environment = env_factory(0)
+    check_layout(environment.physics.model.ptr, groups)
+    if isinstance(hops, bool) or not isinstance(hops, int) or hops < 0:
+        raise ValueError(f"hops must be an integer >= 0, got {hops!r}")
+    return RobotSpec(
+        env_id or f"dm_control:{_name_of(env_factory)}",
+        env_factory,
+        groups,
+        agent_names=names,
+        hops=hops,
+        agent_id=agent_id,
+        episode_limit=episode_limit,
+        root_features=root_features,
+        description=description or f"{len(groups)} agents over {_name_of(env_factory)}",
+    )
+
+
+def check_layout(model, groups: Sequence[Sequence[str]]) -> None:
+    """Refuse a layout that does not fit the model, naming the problem."""
+    import mujoco
+
+    actuators = [model.actuator(i).name for i in range(model.nu)]
+    if not actuators:
+        raise ValueError("the model has no actuators: nothing for agents to drive")
+    if not groups:
+        raise ValueError("the layout has no agents; list each agent's actuator names")
+    owner: dict[str, int] = {}
+    for agent, group in enumerate(groups):
+        if not group:
+            raise ValueError(f"agent {agent} of the layout drives no actuator")
+        for name in group:
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, name) < 0:
+                raise ValueError(
+                    f"the model has no actuator named {name!r}; its actuators: "
+                    f"{', '.join(actuators)}"
+                )
+            if name in owner:
+                raise ValueError(
+                    f"actuator {name!r} is in two agents ({owner[name]} and {agent}); "
+                    "each actuator belongs to one agent"
+                )
+            owner[name] = agent
+
+
+def _split_layout(layout: Layout) -> tuple[tuple[str, ...], tuple[tuple[str, ...], ...]]:
+    if isinstance(layout, Mapping):
+        names, groups = tuple(str(n) for n in layout), tuple(layout.values())
+    else:
+        names, groups = (), tuple(layout)
+    cleaned = []
+    for group in groups:
+        if isinstance(group, str):
+            raise ValueError(
+                f"each agent's actuators must be a list of names, got the string {group!r}"
+            )
+        cleaned.append(tuple(group))
+    return names, tuple(cleaned)
+
+
+def _name_of(factory: Callable) -> str:
+    return getattr(factory, "__name__", type(factory).__name__)
+
+
+# ---------------------------------------------------------------------------- bare models
+
+
+class _ModelTask(base.Task):
+    """A task made of the user's reward and termination functions, with a noisy start."""
+
+    def __init__(self, reward, terminate, reset_noise: float, random):
+        super().__init__(random=random)
+        self._reward_fn, self._terminate, self._noise = reward, terminate, reset_noise
+
+    def initialize_episode(self, physics) -> None:
+        model = physics.model
+        physics.data.qpos[:] = model.qpos0 + self.random.uniform(
+            -self._noise, self._noise, model.nq
+        )
+        physics.data.qvel[:] = self._noise * self.random.standard_normal(model.nv)
+        super().initialize_episode(physics)
+
+    def get_observation(self, physics) -> dict:
+        return {"qpos": physics.data.qpos.copy(), "qvel": physics.data.qvel.copy()}
+
+    def get_reward(self, physics) -> float:
+        return float(self._reward_fn(physics))
+
+    def get_termination(self, physics) -> float | None:
+        if self._terminate is not None and self._terminate(physics):
+            return 0.0
+        return None
+
+
+@dataclass(frozen=True)
+class ModelEnvironment:
+    """A picklable recipe for a dm_control environment from an MJCF model and a reward."""
+
+    model: str  # a path to the XML file, or the XML itself
+    reward: Callable[[Any], float]
+    terminate: Callable[[Any], bool] | None = None
+    substeps: int = 1
+    reset_noise: float = 0.1
+    time_limit: float = field(default=math.inf)
+
+    def physics(self) -> dm_mujoco.Physics:
+        """The compiled model; a path keeps its directory for included files and meshes."""
+        if self.model.lstrip().startswith("<"):
+            return dm_mujoco.Physics.from_xml_string(self.model)
+        return dm_mujoco.Physics.from_xml_path(self.model)
+
+    def __call__(self, seed: int | None) -> control.Environment:
+        task = _ModelTask(
+            self.reward, self.terminate, self.reset_noise, np.random.RandomState(seed)
+        )
+        return control.Environment(
+            self.physics(), task, time_limit=self.time_limit, n_sub_steps=self.substeps
+        )
+
+
+def from_mjcf(
+    model: str | os.PathLike,
+    layout: Layout,
+    reward: Callable[[Any], float],
+    *,
+    terminate: Callable[[Any], bool] | None = None,
+    episode_limit: int = 1000,
+    substeps: int = 1,
+    reset_noise: float = 0.1,
+    hops: int = 1,
+    agent_id: bool = True,
+    root_features: bool = True,
+    env_id: str | None = None,
+) -> RobotSpec:
+    """A team over a bare MuJoCo model: `model` is an MJCF path or XML string, `reward(physics)`
+    the reward of each step, `terminate(physics)` (optional) ends an episode when true.
+
+    One env step is `substeps` physics steps of the model's own timestep. Episodes start at the
+    model's reference pose (qpos0) with uniform noise of +-`reset_noise` on every joint
+    position and `reset_noise`-scaled normal noise on every velocity.
+    """
+    source = os.fspath(model)
+    is_xml = source.lstrip().startswith("<")
+    if not is_xml:
+        path = Path(source)
+        if not path.is_file():
+            raise ValueError(f"model {source!r} is neither an MJCF file nor an XML string")
+        source = str(path.resolve())
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+    if not callable(reward):
+        raise ValueError(f"reward must be a function of the physics, got {reward!r}")
+    factory = ModelEnvironment(source, reward, terminate, substeps, float(reset_noise))
+    name = "model" if is_xml else Path(source).stem
+    return from_dm_control(
+        factory,
+        layout,
+        hops=hops,
+        agent_id=agent_id,
+        episode_limit=episode_limit,
+        root_features=root_features,
+        env_id=env_id or f"mjcf:{name}",
+        description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}",
+    )

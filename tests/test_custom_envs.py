@@ -1,0 +1,325 @@
+"""Your own envs: a custom MJCF robot, any dm_control task, any PettingZoo ParallelEnv."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.test import parallel_api_test
+
+from mat_sdk import envs
+from mat_sdk.bench import seeds
+from mat_sdk.ppo import LossCoefficients, minibatch_loss, ppo_loss
+from mat_sdk.rollout import RolloutCollector
+from mat_sdk.trainer import Trainer
+
+seeds.with_examples()
+import my_robots  # noqa: E402  (examples/, put on the path just above)
+
+ARM_XML = my_robots.MODEL.read_text()
+
+
+# ------------------------------------------------------------------ a hand-written env
+class Uneven(ParallelEnv):
+    """Three agents with different observation and action sizes; `c` leaves at step 2.
+
+    Observations: the step count and the agent's last action, padded with constants.
+    Reward: minus the squared distance of every acting agent's first action from 0.5.
+    """
+
+    metadata = {"name": "uneven", "render_fps": 10}  # noqa: RUF012
+    OBS = {"a": 3, "b": 5, "c": 2}
+    ACT = {"a": 1, "b": 3, "c": 2}
+
+    def __init__(self, seed=None, discrete=False, leave_at=2, length=5):
+        self.possible_agents = list(self.OBS)
+        self.discrete, self.leave_at, self.length = discrete, leave_at, length
+        self._rng = np.random.default_rng(seed)
+        self._spaces = {}  # PettingZoo wants the same space object on every call
+
+    def observation_space(self, agent):
+        return self._spaces.setdefault(("obs", agent), self.make_observation_space(agent))
+
+    def action_space(self, agent):
+        return self._spaces.setdefault(("act", agent), self.make_action_space(agent))
+
+    def make_observation_space(self, agent):
+        return spaces.Box(-np.inf, np.inf, (self.OBS[agent],), np.float32)
+
+    def make_action_space(self, agent):
+        if self.discrete:
+            return spaces.Discrete(self.ACT[agent] + 1)
+        return spaces.Box(-1.0, 1.0, (self.ACT[agent],), np.float32)
+
+    def _obs(self, agent, last):
+        obs = np.full(self.OBS[agent], self._noise, np.float32)
+        obs[0] = self.t
+        obs[1 % self.OBS[agent]] = last
+        return obs
+
+    def reset(self, seed=None, options=None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self.t, self._noise = 0, float(self._rng.normal())
+        self.agents = list(self.possible_agents)
+        return {a: self._obs(a, 0.0) for a in self.agents}, {a: {} for a in self.agents}
+
+    def step(self, actions):
+        self.t += 1
+        first = {a: float(np.asarray(actions[a]).reshape(-1)[0]) for a in self.agents}
+        rewards = {a: -((first[a] - 0.5) ** 2) for a in self.agents}
+        over = self.t >= self.length
+        terminations = {a: a == "c" and self.t >= self.leave_at for a in self.agents}
+        truncations = dict.fromkeys(self.agents, over)
+        obs = {a: self._obs(a, first[a]) for a in self.agents}
+        infos = {a: {} for a in self.agents}
+        self.agents = [a for a in self.agents if not (terminations[a] or truncations[a])]
+        return obs, rewards, terminations, truncations, infos
+
+
+def uneven(seed=None):
+    return Uneven(seed)
+
+
+def uneven_discrete(seed=None):
+    return Uneven(seed, discrete=True)
+
+
+def test_uneven_env_is_a_valid_parallel_env():
+    parallel_api_test(Uneven(0), num_cycles=20)
+
+
+def test_different_spaces_are_padded_and_a_leaving_agent_is_masked():
+    team = envs.from_pettingzoo(uneven).build(seed=0)
+    assert (team.obs_dim, team.action_width, list(team.action_widths)) == (5 + 3, 3, [1, 3, 2])
+    obs = team.reset()
+    assert obs.shape == (3, 8) and np.all(obs[0, 3:5] == 0)  # a's 3 values, then padding
+    assert np.array_equal(obs[:, 5:], np.eye(3))  # one-hot ids after the padding
+    actions = np.zeros((3, 3))
+    team.step(actions)
+    assert team.active.tolist() == [1, 1, 1]
+    obs, _, terminated, truncated = team.step(actions)  # c terminates here and leaves
+    assert team.active.tolist() == [1, 1, 0] and not (terminated or truncated)
+    assert np.all(obs[2] == 0)  # a gone agent's row is zeroed
+    for _ in range(3):
+        obs, _, terminated, truncated = team.step(actions)
+    assert truncated and not terminated  # the rest were cut by the time limit
+
+
+def test_discrete_agents_with_fewer_choices_get_an_available_mask():
+    team = envs.from_pettingzoo(uneven_discrete).build(seed=0)
+    team.reset()
+    assert team.action_type == "discrete" and team.action_size == 4  # b: 3 + 1 choices
+    assert team.available.tolist() == [[1, 1, 0, 0], [1, 1, 1, 1], [1, 1, 1, 0]]
+
+
+class _Masked(Uneven):
+    """Discrete agents whose `action_mask` arrives in the observation dict."""
+
+    def __init__(self, seed=None):
+        super().__init__(seed, discrete=True)
+
+    def make_observation_space(self, agent):
+        n = self.ACT[agent] + 1
+        box = super().make_observation_space(agent)
+        return spaces.Dict({"observation": box, "action_mask": spaces.MultiBinary(n)})
+
+    def _obs(self, agent, last):
+        mask = np.zeros(self.ACT[agent] + 1, np.int8)
+        mask[-1] = 1  # only the last choice is allowed
+        return {"observation": super()._obs(agent, last), "action_mask": mask}
+
+
+def masked(seed=None):
+    return _Masked(seed)
+
+
+def test_action_masks_in_observations_reach_the_policy():
+    spec = envs.from_pettingzoo(masked)
+    with Trainer(spec, "mat", num_envs=4, rollout_length=5, num_minibatches=1) as trainer:
+        trajectories, _ = trainer.rollout()
+    chosen = trajectories["actions"][..., 0]  # [T, E, n]
+    active = trajectories["active"][..., 0] > 0
+    last_choice = torch.tensor([1.0, 3.0, 2.0]).expand_as(chosen)
+    assert torch.equal(chosen[active], last_choice[active])  # never a masked-out choice
+
+
+def _uneven_batch():
+    with Trainer(envs.from_pettingzoo(uneven), "mat", num_envs=4, rollout_length=10) as trainer:
+        trajectories, _ = trainer.rollout()
+        return trainer, RolloutCollector.rows(trajectories)
+
+
+def test_padded_dimensions_and_gone_agents_get_exactly_zero_gradient():
+    trainer, rows = _uneven_batch()
+    assert {"active", "action_dims"} <= set(rows)
+    inactive = rows["active"][..., 0] == 0
+    assert inactive[:, 2].any() and not inactive[:, :2].any()  # only c ever leaves
+    log_prob, entropy, values = trainer.policy.evaluate(rows["obs"], rows["actions"])
+    log_prob, entropy, values = (x.detach().requires_grad_() for x in (log_prob, entropy, values))
+    terms = ppo_loss(
+        log_prob, rows["log_probs"], rows["advantages"], entropy, values, rows["values"],
+        rows["returns"], 0.2, 0.01, 1.0, 10.0, rows["active"], rows["action_dims"],
+    )  # fmt: skip
+    terms.total.backward()
+    padded = rows["action_dims"] == 0
+    assert padded.any()
+    for grad in (log_prob.grad, entropy.grad):
+        assert torch.all(grad[padded] == 0)  # padding: exactly zero
+        assert torch.all(grad[inactive] == 0)  # a gone agent's rows: exactly zero
+        assert torch.all(grad[~padded & ~inactive[..., None].expand_as(padded)] != 0)
+    assert torch.all(values.grad[inactive] == 0) and torch.any(values.grad[~inactive] != 0)
+
+
+def test_a_gone_agents_rows_change_nothing_in_the_loss():
+    trainer, rows = _uneven_batch()
+    coefficients = LossCoefficients.of(trainer.config)
+
+    def loss_and_gradient(batch):
+        trainer.policy.zero_grad()
+        terms = minibatch_loss(trainer.policy, batch, batch["returns"], coefficients)
+        terms.total.backward()
+        grads = [p.grad.clone() for p in trainer.policy.parameters() if p.grad is not None]
+        return terms.total.detach(), grads
+
+    base_loss, base_grads = loss_and_gradient(rows)
+    gone = rows["active"] == 0
+    changed = dict(rows)
+    for key in ("advantages", "returns", "values"):
+        changed[key] = torch.where(gone, torch.randn_like(rows[key]) * 100, rows[key])
+    changed["log_probs"] = torch.where(gone, rows["log_probs"] - 5, rows["log_probs"])
+    loss, grads = loss_and_gradient(changed)
+    assert torch.equal(loss, base_loss)
+    assert all(torch.equal(g, h) for g, h in zip(grads, base_grads, strict=True))
+
+
+def test_an_unfinished_episode_resumes_exactly_by_replay():
+    vec = envs.make_vec(envs.from_pettingzoo(uneven), 2, seed=3)
+    vec.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        vec.step(rng.uniform(-1, 1, (2, 3, 3)))
+    state = vec.get_state()
+    actions = rng.uniform(-1, 1, (4, 2, 3, 3))
+    first = [vec.step(a)[:2] for a in actions]
+    vec.set_state(state)
+    again = [vec.step(a)[:2] for a in actions]
+    for (obs, reward), (obs2, reward2) in zip(first, again, strict=True):
+        assert np.array_equal(obs, obs2) and np.array_equal(reward, reward2)
+    vec.close()
+
+
+class _Odd(Uneven):
+    def __init__(self, seed=None, kind="dict"):
+        super().__init__(seed)
+        self.kind = kind
+
+    def make_observation_space(self, agent):
+        if self.kind == "dict":
+            return spaces.Dict({"pos": spaces.Box(-1, 1, (2,))})
+        return super().make_observation_space(agent)
+
+    def make_action_space(self, agent):
+        if self.kind == "multidiscrete":
+            return spaces.MultiDiscrete([2, 3])
+        if self.kind == "mixed" and agent == "a":
+            return spaces.Discrete(2)
+        return super().make_action_space(agent)
+
+
+@pytest.mark.parametrize(
+    ("kind", "named"),
+    [("dict", "observation space Dict"), ("multidiscrete", "MultiDiscrete"), ("mixed", "Box")],
+)
+def test_unsupported_spaces_say_what_is_supported(kind, named):
+    with pytest.raises(ValueError, match="not supported; supported: every agent") as error:
+        envs.from_pettingzoo(functools.partial(_Odd, kind=kind))
+    assert named in str(error.value)
+
+
+# ------------------------------------------------------------------ your own MuJoCo robot
+def reward_nothing(physics) -> float:
+    return 0.0
+
+
+@pytest.mark.parametrize(
+    ("layout", "problem"),
+    [
+        ([["shoulder"], ["hip"]], "no actuator named 'hip'; its actuators: shoulder, elbow, wrist"),
+        ([["shoulder", "elbow"], ["elbow"]], "actuator 'elbow' is in two agents"),
+        ([["shoulder"], []], "agent 1 of the layout drives no actuator"),
+        ({"arm": "shoulder"}, "must be a list of names, got the string 'shoulder'"),
+    ],
+)
+def test_layout_mistakes_name_the_problem(layout, problem):
+    with pytest.raises(ValueError, match=problem):
+        envs.from_mjcf(ARM_XML, layout, reward_nothing)
+
+
+def test_a_model_without_actuators_is_refused():
+    bare = ARM_XML.split("<actuator>")[0] + "</mujoco>"
+    with pytest.raises(ValueError, match="the model has no actuators"):
+        envs.from_mjcf(bare, [["shoulder"]], reward_nothing)
+
+
+def test_a_missing_model_file_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="neither an MJCF file nor an XML string"):
+        envs.from_mjcf(tmp_path / "robot.xml", [["shoulder"]], reward_nothing)
+
+
+def test_the_custom_arm_is_decomposed_like_a_built_in_robot():
+    team = envs.make_team("my_robots:arm", seed=0)
+    assert team.env_id == "my_robots:arm" and team.agents == ["shoulder", "forearm"]
+    assert list(team.action_widths) == [1, 2]
+    assert team.joint_names(1) == ["elbow", "wrist"]
+    assert team.control_timestep == pytest.approx(0.02)  # the model's 0.01 s x 2 substeps
+    parallel_api_test(envs.make("my_robots:arm"), num_cycles=60)
+    broken = envs.make_team("my_robots:arm", faults={"wrist": "zero"}, seed=0)
+    assert broken.n_agents == 2
+    fewer = envs.make_team("my_robots:arm", faults={"forearm": "remove"})
+    assert fewer.agents == ["shoulder"]
+
+
+def test_a_dm_control_suite_task_with_a_layout_of_its_own():
+    from mat_sdk.envs.robots import SuiteTask
+
+    spec = envs.from_dm_control(SuiteTask("cheetah", "run"), {"back": ["bthigh"], "front": ["fthigh"]})
+    team = spec.build(seed=0)
+    assert team.agents == ["back", "front"] and team.episode_limit == 1000
+    obs, reward, *_ = team.step(np.zeros((2, 1)))
+    assert obs.shape == (2, team.obs_dim) and np.isfinite(reward)
+
+
+def test_trainer_takes_a_spec_and_a_module_level_factory():
+    with Trainer(my_robots.arm(), "mat", num_envs=2, rollout_length=4, num_minibatches=1) as t:
+        assert t.config.env == "mjcf:arm"
+    with Trainer(my_robots.arm, "mat", num_envs=2, rollout_length=4, num_minibatches=1) as t:
+        assert t.config.env == "my_robots:arm"  # rebuildable in any process
+        t.learn(8, progress_bar=False)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "problem"),
+    [
+        ("no_such_module:arm", "no module 'no_such_module' to import"),
+        ("my_robots:no_such_function", "module 'my_robots' has no 'no_such_function'"),
+        ("my_robots:reach_reward", "must name a function of no arguments"),
+    ],
+)
+def test_a_module_function_id_that_cannot_be_found_names_what_was_looked_for(env_id, problem):
+    with pytest.raises(ValueError, match=problem):
+        envs.make_team(env_id)
+
+
+# ------------------------------------------------------------------ learning
+def test_mat_learns_the_custom_arm():
+    assert seeds.arm_return(0) >= seeds.beats_random(seeds.ARM_ENV, seeds.ARM_FRACTION)
+
+
+@pytest.mark.parametrize("env_id", ["mpe_envs:spread", "mpe_envs:spread_continuous"])
+def test_mat_learns_mpe_simple_spread(env_id):
+    assert seeds.spread_return(0, env_id) >= seeds.beats_random(env_id, seeds.SPREAD_FRACTION)
