@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import functools
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -21,6 +28,8 @@ seeds.with_examples()
 import my_robots  # noqa: E402  (examples/, put on the path just above)
 
 ARM_XML = my_robots.MODEL.read_text()
+REPO = Path(__file__).resolve().parents[1]
+TUTORIAL = REPO / "docs" / "CUSTOM_ENVS.md"
 
 
 # ------------------------------------------------------------------ a hand-written env
@@ -31,9 +40,9 @@ class Uneven(ParallelEnv):
     Reward: minus the squared distance of every acting agent's first action from 0.5.
     """
 
-    metadata = {"name": "uneven", "render_fps": 10}  # noqa: RUF012
-    OBS = {"a": 3, "b": 5, "c": 2}
-    ACT = {"a": 1, "b": 3, "c": 2}
+    metadata: ClassVar[dict] = {"name": "uneven", "render_fps": 10}
+    OBS: ClassVar[dict] = {"a": 3, "b": 5, "c": 2}
+    ACT: ClassVar[dict] = {"a": 1, "b": 3, "c": 2}
 
     def __init__(self, seed=None, discrete=False, leave_at=2, length=5):
         self.possible_agents = list(self.OBS)
@@ -287,7 +296,9 @@ def test_the_custom_arm_is_decomposed_like_a_built_in_robot():
 def test_a_dm_control_suite_task_with_a_layout_of_its_own():
     from mat_sdk.envs.robots import SuiteTask
 
-    spec = envs.from_dm_control(SuiteTask("cheetah", "run"), {"back": ["bthigh"], "front": ["fthigh"]})
+    spec = envs.from_dm_control(
+        SuiteTask("cheetah", "run"), {"back": ["bthigh"], "front": ["fthigh"]}
+    )
     team = spec.build(seed=0)
     assert team.agents == ["back", "front"] and team.episode_limit == 1000
     obs, reward, *_ = team.step(np.zeros((2, 1)))
@@ -323,3 +334,99 @@ def test_mat_learns_the_custom_arm():
 @pytest.mark.parametrize("env_id", ["mpe_envs:spread", "mpe_envs:spread_continuous"])
 def test_mat_learns_mpe_simple_spread(env_id):
     assert seeds.spread_return(0, env_id) >= seeds.beats_random(env_id, seeds.SPREAD_FRACTION)
+
+
+# ------------------------------------------------------------------ the tools, by env id
+def _blocks(kind: str) -> list[str]:
+    return re.findall(rf"```{kind}\n(.*?)```", TUTORIAL.read_text(), flags=re.S)
+
+
+def _tutorial_commands() -> list[str]:
+    lines = [line for block in _blocks("bash") for line in block.splitlines()]
+    return [line for line in lines if line and not line.startswith("export PYTHONPATH")]
+
+
+def _run(command: str, cwd: Path) -> subprocess.CompletedProcess:
+    """A tutorial command as a user runs it, from a directory holding `examples/`."""
+    words = command.split()
+    if words[0] == "mat":
+        words = [sys.executable, "-m", "mat_sdk", *words[1:]]
+    elif words[0] == "python":
+        words = [sys.executable, *words[1:]]
+    environment = {**os.environ, "PYTHONPATH": str(cwd / "examples")}
+    return subprocess.run(words, cwd=cwd, env=environment, capture_output=True, text=True)
+
+
+def _workdir(tmp_path: Path) -> Path:
+    (tmp_path / "examples").symlink_to(REPO / "examples")
+    return tmp_path
+
+
+def _check_tutorial(tmp_path: Path, shorten: bool) -> dict[str, str]:
+    cwd, outputs = _workdir(tmp_path), {}
+    commands = _tutorial_commands()
+    assert len(commands) == 6
+    for command in commands:
+        if shorten:  # one update each: the learning itself is tested above, by recipe
+            command = re.sub(r"--steps \d+", "--steps 1", command)
+        done = _run(command, cwd)
+        assert done.returncode == 0, f"{command}\n{done.stdout}\n{done.stderr}"
+        outputs[command.split()[1] + " " + command.split()[2]] = done.stdout
+    manifest = json.loads((cwd / "runs/arm/onnx/manifest.json").read_text())
+    assert manifest["env_id"] == "my_robots:arm"
+    assert "late ticks: 0" in outputs["examples/controller.py runs/arm/onnx"]
+    assert (
+        "my_robots:arm with agents ['shoulder', 'forearm']"
+        in outputs["examples/controller.py runs/arm/onnx"]
+    )
+    return outputs
+
+
+def test_every_tutorial_command_runs_with_the_ids_it_names(tmp_path):
+    """module:function ids through mat train, eval, export and the controller (subprocesses)."""
+    outputs = _check_tutorial(tmp_path, shorten=True)
+    assert "over 8 episodes" in outputs["eval runs/arm/checkpoint.pt"]
+    assert "over 16 episodes" in outputs["eval runs/spread/checkpoint.pt"]
+
+
+@pytest.mark.slow
+def test_the_tutorial_as_written_trains_an_arm_that_beats_a_random_team(tmp_path):
+    outputs = _check_tutorial(tmp_path, shorten=False)
+    found = re.search(r"return (-?[\d.]+) \+-", outputs["eval runs/arm/checkpoint.pt"])
+    assert float(found.group(1)) >= seeds.beats_random(seeds.ARM_ENV, seeds.ARM_FRACTION)
+
+
+def test_the_tutorials_python_runs_and_its_module_is_the_example():
+    module, usage, spread = _blocks("python")
+    examples = REPO / "examples"
+    for block, source in ((module, "my_robots.py"), (spread, "mpe_envs.py")):
+        code = (examples / source).read_text()
+        assert all(line in code for line in block.splitlines()), source
+    exec(compile(usage, str(TUTORIAL), "exec"), {})
+
+
+def test_a_module_function_id_that_cannot_be_found_is_one_line_from_the_cli(tmp_path):
+    done = _run("mat train no_such_module:arm --steps 1", _workdir(tmp_path))
+    assert done.returncode != 0
+    assert done.stderr.strip().count("\n") == 0 and "Traceback" not in done.stderr
+    assert "no module 'no_such_module' to import" in done.stderr
+
+
+def test_an_installed_package_registers_ids_that_mat_envs_lists(tmp_path):
+    """A distribution with a `mat_sdk.envs` entry point, as `pip install` leaves it."""
+    info = tmp_path / "my_robots_pkg-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: my-robots-pkg\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[mat_sdk.envs]\narm-2 = my_robots:arm\n")
+    environment = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{REPO / 'examples'}"}
+    listed = subprocess.run(
+        [sys.executable, "-m", "mat_sdk", "envs"], env=environment, capture_output=True, text=True
+    )
+    assert listed.returncode == 0, listed.stderr
+    row = next(line for line in listed.stdout.splitlines() if line.startswith("arm-2 "))
+    assert row.split()[1:4] == ["2", "10", "2"]  # agents, obs size, action size
+    built = subprocess.run(
+        [sys.executable, "-c", "from mat_sdk import envs; print(envs.make_team('arm-2').agents)"],
+        env=environment, capture_output=True, text=True,
+    )  # fmt: skip
+    assert built.stdout.strip() == "['shoulder', 'forearm']", built.stderr

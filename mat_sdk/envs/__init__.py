@@ -1,8 +1,14 @@
-"""Multi-agent decompositions of dm_control robots, as PettingZoo envs and vectorised arrays.
+"""Multi-agent decompositions of MuJoCo robots (ours or yours) and PettingZoo envs, as
+PettingZoo envs and vectorised arrays.
 
     from mat_sdk import envs
     env = envs.make("cheetah-6x1", faults={"bfoot": "zero"})      # PettingZoo ParallelEnv
     vec = envs.make_vec("cheetah-6x1", num_envs=40, workers=2)      # obs [40, 6, obs_dim]
+    arm = envs.from_mjcf("arm.xml", [["shoulder"], ["elbow", "wrist"]], reward)  # your robot
+    vec = envs.make_vec("my_robots:arm", num_envs=8)                # by module:function id
+
+Ids and what they build: `registry.py`; your own robots: `sources.py`; PettingZoo envs:
+`pettingzoo_team.py`.
 
 Options (keywords of `make`, `make_vec` and `make_team`):
     agent_id       append a one-hot agent id (default: on, except for variable-count families)
