@@ -1,0 +1,115 @@
+"""MAT vs MAT-Dec vs MAPPO on one env at equal steps and settings, over seeds: a table and a plot.
+
+    python -m mat_sdk.bench.compare mpe_envs:spread --steps 200000 --seeds 3 \
+        --out docs/spread --recipe spread
+
+Each (algorithm, seed) trains in its own process (one per core), writes OUT/runs/ALGO-sK/
+(metrics.csv, checkpoint.pt), and is then evaluated on 32 deterministic episodes. The table
+gives every seed's evaluation and the mean and spread over seeds; the plot, the per-update
+return of each algorithm averaged over its seeds, with the band between the seeds' lowest
+and highest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+from pathlib import Path
+
+import numpy as np
+
+from mat_sdk.bench import machine, print_table
+from mat_sdk.bench.seeds import EVALUATION_SEED, SPREAD, SPREAD_EVALUATIONS, with_examples
+from mat_sdk.processes import usable_cores
+from mat_sdk.run_log import METRICS_NAME, read_metrics
+
+ALGOS = ("mat", "mat-dec", "mappo")
+RECIPES = {"spread": SPREAD}  # one set of PPO settings for every algorithm
+
+
+def _train(job: tuple[str, str, int, int, dict, str]) -> tuple[str, int, float]:
+    import torch
+
+    from mat_sdk.trainer import Trainer
+
+    torch.set_num_threads(1)
+    with_examples()
+    env_id, algo, seed, steps, recipe, out = job
+    with Trainer(env_id, algo, out_dir=Path(out) / f"{algo}-s{seed}", seed=seed, **recipe) as t:
+        t.learn(steps, progress_bar=False)
+        return algo, seed, float(np.mean(t.evaluate(SPREAD_EVALUATIONS)))
+
+
+def _curves(out: Path, seeds: list[int]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per algorithm: env steps and the per-update returns [seeds, updates]."""
+    curves = {}
+    for algo in ALGOS:
+        runs = [read_metrics(out / f"{algo}-s{seed}" / METRICS_NAME) for seed in seeds]
+        steps = np.array([int(r["steps"]) for r in runs[0]])
+        returns = np.array([[float(r["return_mean"]) for r in rows] for rows in runs])
+        curves[algo] = (steps, returns)
+    return curves
+
+
+def plot(curves, png: Path, title: str, window: int = 10) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    kernel = np.ones(window) / window
+    for algo, (steps, returns) in curves.items():
+        smooth = np.array([np.convolve(r, kernel, mode="valid") for r in returns])
+        x = steps[window - 1 :]
+        ax.plot(x, smooth.mean(0), label=f"{algo} (mean of {len(returns)} seeds)")
+        ax.fill_between(x, smooth.min(0), smooth.max(0), alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel(f"episode return (moving mean of {window} updates)")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("env_id")
+    parser.add_argument("--steps", type=int, default=200_000)
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--recipe", choices=sorted(RECIPES), default="spread")
+    parser.add_argument("--out", type=Path, required=True, help="directory for runs and plot")
+    args = parser.parse_args()
+    runs = args.out / "runs"
+    seeds = list(range(args.seeds))
+    jobs = [
+        (args.env_id, algo, seed, args.steps, RECIPES[args.recipe], str(runs))
+        for algo in ALGOS
+        for seed in seeds
+    ]
+    with mp.get_context("spawn").Pool(min(len(jobs), usable_cores())) as pool:
+        results = pool.map(_train, jobs, chunksize=1)
+    print(f"machine: {machine()}; {args.env_id}, {args.steps} steps, recipe {args.recipe}")
+    print(f"evaluation: {SPREAD_EVALUATIONS} deterministic episodes, seed {EVALUATION_SEED}\n")
+    rows = []
+    for algo in ALGOS:
+        scores = [score for a, _, score in results if a == algo]
+        rows.append(
+            {
+                "algorithm": algo,
+                "per seed": ", ".join(f"{s:.2f}" for s in scores),
+                "mean": f"{np.mean(scores):.2f}",
+                "std": f"{np.std(scores):.2f}",
+                "min": f"{np.min(scores):.2f}",
+                "max": f"{np.max(scores):.2f}",
+            }
+        )
+    print_table(rows, "final evaluation")
+    png = args.out / f"{args.env_id.replace(':', '_')}_mat_matdec_mappo.png"
+    print(plot(_curves(runs, seeds), png, f"{args.env_id}, {args.steps} steps, {len(seeds)} seeds"))
+
+
+if __name__ == "__main__":
+    main()
