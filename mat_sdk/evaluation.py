@@ -37,11 +37,12 @@ class LoadedPolicy:
             norm.load_state_dict(payload["obs_norm"])
         return cls(policy, norm, payload["config"])
 
-    def predict(self, obs, team, deterministic: bool = True, generator=None):
+    def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):
         """Actions for raw observations of `team` (an env with its agents and sizes): an
         array [n, obs_dim] or [B, n, obs_dim] -> an array [.., n, action_width] (discrete:
         [.., n, 1] choice indices); or a PettingZoo obs dict {agent: obs} -> an action dict
-        ready for `env.step` (each agent's own action width; discrete: an int)."""
+        ready for `env.step` (each agent's own action width; discrete: an int). `available`
+        ([.., n, choices], discrete) masks the choices an agent may not take."""
         if isinstance(obs, Mapping):
             agents = list(team.agents)
             if set(obs) != set(agents):
@@ -49,7 +50,7 @@ class LoadedPolicy:
                     f"obs must have one entry per agent of {team.env_id}: {agents}; got {list(obs)}"
                 )
             stacked = np.stack([np.asarray(obs[a]) for a in agents])
-            actions = self.predict(stacked, team, deterministic, generator)
+            actions = self.predict(stacked, team, deterministic, generator, available)
             if team.action_type == "discrete":
                 return {a: int(actions[i, 0]) for i, a in enumerate(agents)}
             return {a: actions[i, : team.action_widths[i]] for i, a in enumerate(agents)}
@@ -60,7 +61,9 @@ class LoadedPolicy:
             raise ValueError(
                 f"obs must be [n, {team.obs_dim}] or [B, n, {team.obs_dim}], got {obs.shape}"
             )
-        actions = self.act(batch, deterministic, generator)
+        if available is not None and single:
+            available = np.asarray(available)[None]
+        actions = self.act(batch, deterministic, generator, available)
         return actions[0] if single else actions
 
     def act(

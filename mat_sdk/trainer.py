@@ -87,10 +87,12 @@ class Trainer:
     def obs_norm(self) -> RunningMeanStd:
         return self.collector.obs_norm
 
-    def predict(self, obs, deterministic: bool = True):
+    def predict(self, obs, deterministic: bool = True, available=None):
         """Actions for raw observations (`LoadedPolicy.predict`): an array [n, obs_dim] or
-        [B, n, obs_dim] -> an array, or a PettingZoo obs dict -> an action dict."""
-        return self._as_loaded().predict(obs, self.env, deterministic, self.collector.generator)
+        [B, n, obs_dim] -> an array, or a PettingZoo obs dict -> an action dict. `available`
+        [.., n, choices] (discrete) masks the choices an agent may not take."""
+        generator = self.collector.generator
+        return self._as_loaded().predict(obs, self.env, deterministic, generator, available)
 
     # ---------------------------------------------------------------- training
     def learn(

@@ -157,6 +157,27 @@ def test_action_masks_in_observations_reach_the_policy():
     assert torch.equal(chosen[active], last_choice[active])  # never a masked-out choice
 
 
+def test_predict_takes_available_actions():
+    with Trainer(envs.from_pettingzoo(uneven_discrete), "mat", num_envs=2, rollout_length=5) as t:
+        obs = t.env.reset()[0]
+        only_first = np.zeros((3, 4))
+        only_first[:, 0] = 1
+        assert t.predict(obs, available=only_first)[:, 0].tolist() == [0, 0, 0]
+        only_last = np.eye(4)[[1, 3, 2]]  # each agent's last own choice
+        assert t.predict(obs, available=only_last)[:, 0].tolist() == [1, 3, 2]
+
+
+def test_a_custom_robot_steps_in_env_worker_processes():
+    """Workers rebuild the env from the pickled spec: its reward is importable."""
+    with (
+        envs.make_vec("my_robots:arm", 2, workers=1, seed=0) as vec,
+        envs.make_vec("my_robots:arm", 2, seed=0) as local,
+    ):
+        actions = np.full((2, 2, 2), 0.3)
+        assert np.array_equal(vec.reset(), local.reset())
+        assert np.array_equal(vec.step(actions)[0], local.step(actions)[0])
+
+
 def _uneven_batch():
     with Trainer(envs.from_pettingzoo(uneven), "mat", num_envs=4, rollout_length=10) as trainer:
         trajectories, _ = trainer.rollout()
