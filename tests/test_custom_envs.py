@@ -402,7 +402,7 @@ def _workdir(tmp_path: Path) -> Path:
 def _check_tutorial(tmp_path: Path, shorten: bool) -> dict[str, str]:
     cwd, outputs = _workdir(tmp_path), {}
     commands = _tutorial_commands()
-    assert len(commands) == 6
+    assert len(commands) == 7
     if shorten:  # the robot's, one update: learning is tested above, by recipe
         commands = [re.sub(r"--steps \d+", "--steps 1", c) for c in commands if "spread" not in c]
     for command in commands:
@@ -423,6 +423,7 @@ def test_every_tutorial_command_runs_with_the_ids_it_names(tmp_path):
     """module:function ids through mat train, eval, export and the controller (subprocesses)."""
     outputs = _check_tutorial(tmp_path, shorten=True)
     assert "over 8 episodes" in outputs["eval runs/arm/checkpoint.pt"]
+    assert (tmp_path / "runs/arm-no-wrist/checkpoint.pt").is_file()
 
 
 @pytest.mark.slow

@@ -14,6 +14,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs, processes
+from mat_sdk.bench.seeds import with_examples
 from mat_sdk.envs.robots import spec_for
 from mat_sdk.envs.vector import TeamFactory, VecTeam
 
@@ -371,8 +372,9 @@ def gl_context_problem() -> str | None:
     return f"MUJOCO_GL={environment['MUJOCO_GL']}: {lines[-1]}"
 
 
-@pytest.mark.parametrize("env_id", ["cheetah-6x1", "mamujoco:HalfCheetah-6x1"])
+@pytest.mark.parametrize("env_id", ["cheetah-6x1", "mamujoco:HalfCheetah-6x1", "my_robots:arm"])
 def test_render_returns_rgb_where_gl_exists(env_id):
+    with_examples()  # my_robots: a custom MJCF robot renders like a built-in one
     problem = gl_context_problem()
     if problem:  # only a missing GL context skips; any other render failure fails
         pytest.skip(f"no OpenGL context can be made here ({problem})")
