@@ -106,9 +106,10 @@ class RolloutCollector:
     @torch.no_grad()
     def collect(self, update_norm: bool = True, keep_raw: bool = False) -> dict[str, Any]:
         """`rollout_length` steps of every env with the current policy: tensors [T, E, ...]
-        (`TRAJECTORY_KEYS`, `order` when shuffling), the values to bootstrap from
-        (`bootstrap` at truncations, `last_values`), and the returns of the episodes that
-        finished (`finished`).
+        (`TRAJECTORY_KEYS`; `order` when shuffling; `active`, `available`, `action_dims`
+        where the envs have them, see `masks` and `action_dims`), the values to bootstrap
+        from (`bootstrap` at truncations, `last_values`), and the returns of the episodes
+        that finished (`finished`).
 
         `update_norm`: update the observation statistics as observations arrive.
         `keep_raw`: also return the raw observations (`raw_obs`), for a learner to fold into
