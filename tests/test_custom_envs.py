@@ -147,14 +147,42 @@ def masked(seed=None):
     return _Masked(seed)
 
 
-def test_action_masks_in_observations_reach_the_policy():
-    spec = envs.from_pettingzoo(masked)
+class _MaskedInInfos(Uneven):
+    """Discrete agents whose `action_mask` arrives in their infos."""
+
+    def __init__(self, seed=None):
+        super().__init__(seed, discrete=True)
+
+    def _with_masks(self, infos):
+        for agent in infos:
+            infos[agent]["action_mask"] = np.eye(self.ACT[agent] + 1, dtype=np.int8)[-1]
+        return infos
+
+    def reset(self, seed=None, options=None):
+        obs, infos = super().reset(seed, options)
+        return obs, self._with_masks(infos)
+
+    def step(self, actions):
+        *rest, infos = super().step(actions)
+        return (*rest, self._with_masks(infos))
+
+
+def masked_in_infos(seed=None):
+    return _MaskedInInfos(seed)
+
+
+@pytest.mark.parametrize("factory", [masked, masked_in_infos], ids=["in obs", "in infos"])
+def test_action_masks_reach_the_policy(factory):
+    spec = envs.from_pettingzoo(factory)
     with Trainer(spec, "mat", num_envs=4, rollout_length=5, num_minibatches=1) as trainer:
         trajectories, _ = trainer.rollout()
+        rows = RolloutCollector.rows(trajectories)
+        log_prob, _, _ = trainer.policy.evaluate(rows["obs"], rows["actions"], rows["available"])
     chosen = trajectories["actions"][..., 0]  # [T, E, n]
     active = trajectories["active"][..., 0] > 0
     last_choice = torch.tensor([1.0, 3.0, 2.0]).expand_as(chosen)
     assert torch.equal(chosen[active], last_choice[active])  # never a masked-out choice
+    assert torch.all(log_prob[rows["active"][..., 0] > 0] == 0)  # the loss sees one choice
 
 
 def test_predict_takes_available_actions():
