@@ -156,7 +156,9 @@ def envs() -> None:
     available as mamujoco:<Scenario>-<conf>, e.g. mamujoco:HalfCheetah-6x1;
     coordination-N (any N >= 2) is a one-step discrete game that MAT solves in
     seconds (act: its number of choices). Ids that installed packages register
-    under the entry-point group mat_sdk.envs are listed too.
+    under the entry-point group mat_sdk.envs are listed too. [family]: one
+    observation size for any agent count (swimmer-N, mamujoco:ManySegmentSwimmer-Kx2,
+    mamujoco:ManySegmentAnt-Kx2), so one policy serves them all.
     """
     from mat_sdk.envs import list_envs
 
@@ -165,11 +167,12 @@ def envs() -> None:
         "Your own robot or PettingZoo env: an id module:function (e.g. my_robots:arm, "
         "imported from the current directory or PYTHONPATH), see docs/CUSTOM_ENVS.md.\n"
     )
-    click.echo(f"{'id':<26} {'agents':>6} {'obs':>5} {'act':>4} {'limit':>6}  about")
+    width = max(26, *(len(r["id"]) for r in rows))
+    click.echo(f"{'id':<{width}} {'agents':>6} {'obs':>5} {'act':>4} {'limit':>6}  about")
     for r in rows:
         click.echo(
-            f"{r['id']:<26} {r['agents']:>6} {r['obs']:>5} {r['act']:>4} "
-            f"{r['episode_limit']:>6}  {r['about']}"
+            f"{r['id']:<{width}} {r['agents']:>6} {r['obs']:>5} {r['act']:>4} "
+            f"{r['episode_limit']:>6}  {'[family] ' if r['family'] else ''}{r['about']}"
         )
 
 

@@ -128,6 +128,19 @@ def test_one_hot_agent_id_and_swimmer_obs_size_independent_of_n():
     assert envs.make_team("hopper-4x1", agent_id=False).obs_dim == 11
 
 
+@pytest.mark.parametrize(
+    ("family", "counts", "size"),
+    [("ManySegmentSwimmer", (3, 4, 8), 6), ("ManySegmentAnt", (2, 4), 115)],
+)
+def test_mamujoco_families_have_one_observation_size_for_every_count(family, counts, size):
+    teams = [envs.make_team(f"mamujoco:{family}-{k}x2") for k in counts]
+    assert [t.n_agents for t in teams] == list(counts)
+    assert {t.obs_dim for t in teams} == {size}  # agent_obsk=1, no one-hot id by default
+    listed = {r["id"]: r["family"] for r in envs.list_envs()}
+    assert listed["swimmer-6"] and listed[f"mamujoco:{family}-{4 if 'Swim' in family else 3}x2"]
+    assert not listed["cheetah-6x1"] and not listed["mamujoco:HalfCheetah-6x1"]
+
+
 def test_fast_reward_equals_the_suite_task_reward():
     team = envs.make_team("cheetah-6x1", seed=0)
     team.reset(seed=0)

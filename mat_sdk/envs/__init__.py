@@ -122,7 +122,13 @@ def list_envs() -> list[dict[str, Any]]:
     """One row per env id (built-in, then installed packages'): agents, obs size, action
     size, episode limit, description."""
     rows = []
-    built_in = [*env_ids(), "mamujoco:HalfCheetah-6x1", "coordination-3"]
+    built_in = [
+        *env_ids(),
+        "mamujoco:HalfCheetah-6x1",
+        "mamujoco:ManySegmentSwimmer-4x2",
+        "mamujoco:ManySegmentAnt-3x2",
+        "coordination-3",
+    ]
     for env_id in [*built_in, *installed_ids()]:
         team = build_team(env_id)
         spec = getattr(team, "spec", None)
@@ -134,6 +140,7 @@ def list_envs() -> list[dict[str, Any]]:
                 "act": team.action_size,  # discrete: the number of choices
                 "episode_limit": team.episode_limit,
                 "about": getattr(spec, "description", "") or team.description,
+                "family": bool(getattr(spec, "variable_count", getattr(team, "variable_count", 0))),
             }
         )
         close = getattr(team, "close", None)

@@ -3,6 +3,10 @@
 So results on e.g. `mamujoco:HalfCheetah-6x1` compare directly with published MA-MuJoCo
 numbers (the paper's MAT reaches about 9,000 there). Defaults follow the paper's set-up:
 `agent_obsk=0` and a one-hot agent id appended to every observation.
+
+`ManySegmentSwimmer-Kx2` and `ManySegmentAnt-Kx2` are families: one observation size for
+every K, so one policy can serve any count. They default to `agent_obsk=1` and no one-hot id
+(which would tie the observation size to K).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from mat_sdk.envs.base import (
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
+FAMILIES = ("ManySegmentSwimmer", "ManySegmentAnt")  # any K: mamujoco:<family>-Kx2
 
 
 class MaMuJoCoTeam(ArrayTeam):
@@ -40,7 +45,7 @@ class MaMuJoCoTeam(ArrayTeam):
         *,
         seed: int | None = None,
         agent_id: bool | None = None,
-        agent_obsk: int = 0,
+        agent_obsk: int | None = None,
         episode_limit: int | None = None,
     ):
         # Its import prints a notice about Adroit envs, which this SDK never uses.
@@ -51,6 +56,11 @@ class MaMuJoCoTeam(ArrayTeam):
         if not match:
             raise ValueError(f"MaMuJoCo ids look like 'mamujoco:HalfCheetah-6x1', got {env_id!r}")
         scenario, conf = match.groups()
+        self.variable_count = scenario in FAMILIES
+        if self.variable_count:
+            self.description = "Gymnasium-Robotics, any K (agent_obsk=1, no one-hot id)"
+        if agent_obsk is None:
+            agent_obsk = 1 if self.variable_count else 0
         self.env_id = env_id
         try:
             self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
@@ -62,7 +72,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self.possible_agents = list(self._env.possible_agents)
         self.agents = self.possible_agents
         self.n_agents = len(self.agents)
-        self.agent_id = True if agent_id is None else bool(agent_id)
+        self.agent_id = (not self.variable_count) if agent_id is None else bool(agent_id)
         self.action_widths = np.array([self._env.action_space(a).shape[0] for a in self.agents])
         self.action_width = int(self.action_widths.max())
         self.action_size = self.action_width
