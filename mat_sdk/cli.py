@@ -600,17 +600,23 @@ def bench_envs(seconds: float) -> None:
 @click.option(
     "--agents", default="2,6,17,64,256", show_default=True, help="Comma-separated agent counts."
 )
+@click.option(
+    "--scaling/--no-scaling",
+    default=True,
+    show_default=True,
+    help="Also the runtime alone at n = 64, 256, 1024: time ratios and peak memory.",
+)
 @user_errors
-def bench_runtime(seconds: float, agents: str) -> None:
+def bench_runtime(seconds: float, agents: str, scaling: bool) -> None:
     """One control step: mat_runtime vs the official re-decode, torch cached, step graph.
 
     \b
     Example:
-      mat bench runtime --agents 6,64 --seconds 1
+      mat bench runtime --agents 6,64 --seconds 1 --no-scaling
     """
     from mat_sdk.bench.runtime import main as run
 
-    run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds)
+    run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds, scale=scaling)
 
 
 @bench.command("scaling")

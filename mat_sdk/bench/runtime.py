@@ -103,19 +103,52 @@ def _us(seconds: float) -> str:
     return f"{seconds * 1e6:,.0f}"
 
 
-def _scaling(bundle: Path, obs_dim: int, seconds: float) -> tuple[float, float]:
-    """p50 of the runtime at n = 64 and n = 256, interleaved round by round, so a change in
-    the machine's speed between the table's rows cannot skew their ratio."""
+SCALING = (64, 256, 1024)
+
+# Run in a fresh process per agent count: the peak resident memory that acting at n adds
+# to a loaded policy (ONNX Runtime's buffers for that n), in MiB.
+_PEAK_MEMORY = """
+import resource, sys
+import numpy as np
+from mat_runtime import Policy
+policy = Policy.load(sys.argv[1], threads=1)
+n, dim = int(sys.argv[2]), policy.obs_dim
+policy.act(np.zeros((1, dim), np.float32))
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+for _ in range(3):
+    policy.act(np.random.default_rng(0).standard_normal((n, dim)).astype(np.float32))
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print((after - before) / 1024)
+"""
+
+
+def peak_memory_mib(bundle: Path, n: int) -> float:
+    """What acting at n agents adds to a loaded policy's peak resident memory, in MiB."""
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", _PEAK_MEMORY, str(bundle), str(n)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    return float(done.stdout.strip())
+
+
+def _scaling(bundle: Path, obs_dim: int, seconds: float) -> dict[int, float]:
+    """p50 of the runtime at each n of SCALING, interleaved round by round, so a change in
+    the machine's speed between the rows cannot skew their ratios."""
     runtime = Policy.load(bundle, threads=1)
     rng = np.random.default_rng(0)
-    obs = {n: rng.standard_normal((n, obs_dim)).astype(np.float32) for n in (64, 256)}
+    obs = {n: rng.standard_normal((n, obs_dim)).astype(np.float32) for n in SCALING}
     times = latencies({n: lambda x=x: runtime.act(x) for n, x in obs.items()}, seconds)
-    return float(np.median(times[64])), float(np.median(times[256]))
+    return {n: float(np.median(times[n])) for n in SCALING}
 
 
-def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
+def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
+    """The table of variants at `agent_counts`; with `scale`, the runtime alone at
+    n = 64, 256, 1024 (the other variants are O(n^2) or Python loops: minutes at 1,024)."""
     torch.set_num_threads(1)
-    rows, scaling = [], {}
+    rows, scaling = [], []
     for label, model in SIZES.items():
         with tempfile.TemporaryDirectory() as tmp:
             bundle, policy = _bundle(Path(tmp), **model)
@@ -140,11 +173,22 @@ def main(agent_counts=AGENTS, seconds: float = 2.0) -> None:
                         "(a) vs (d)": f"{p50['step graph'] / p50['runtime']:.1f}x",
                     }
                 )
-            if 64 in agent_counts and 256 in agent_counts:
-                scaling[label] = _scaling(bundle, policy.cfg.obs_dim, seconds)
+            if scale:
+                times = _scaling(bundle, policy.cfg.obs_dim, seconds)
+                for n, t in times.items():
+                    scaling.append(
+                        {
+                            "model": label,
+                            "agents": n,
+                            "runtime p50 (µs)": _us(t),
+                            "t(n) / t(n / 4)": f"{t / times[n // 4]:.2f}"
+                            if n // 4 in times
+                            else "",
+                            "peak memory added (MiB)": f"{peak_memory_mib(bundle, n):.1f}",
+                        }
+                    )
     print_table(rows, f"One control step, one thread — {machine()}")
-    for label, (t64, t256) in scaling.items():
-        print(
-            f"{label}: runtime t(256) / t(64) = {t256 / t64:.2f} "
-            f"(interleaved: {_us(t64)} and {_us(t256)} µs)"
+    if scaling:
+        print_table(
+            scaling, "Scaling in n: the runtime alone, interleaved (linear: t(n)/t(n/4) = 4)"
         )
