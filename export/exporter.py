@@ -340,6 +340,7 @@ def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "min": cfg.n_agents if cfg.algo == "mappo" else 1,
             "max": cfg.n_agents if cfg.algo == "mappo" else None,
             "trained": cfg.n_agents,
+            "trained_counts": env.get("counts") or [cfg.n_agents],  # every count trained on
             "names": env.get("agents"),
         },
         "env_id": env.get("id"),  # with the faults and options the policy was trained under

@@ -37,13 +37,15 @@ def training_payload(trainer) -> dict[str, Any]:
 
     `trainer` is a `mat_sdk.trainer.Trainer` (its config, model config, envs, policy, flat
     parameters and optimizer, progress, rollout collector and value normaliser)."""
-    env, collector = trainer.env, trainer.collector
+    collector = trainer.collectors[0]  # the others share its normaliser and generators
+    env = collector.env
     return {
         "config": {
             "train": asdict(trainer.config),
             "model": trainer.model_config.to_dict(),
             "env": {
                 "id": trainer.config.env,
+                "counts": [c.env.n_agents for c in trainer.collectors],  # per env id
                 "agents": list(env.agents),
                 "obs_dim": env.obs_dim,
                 "action_type": env.action_type,
@@ -65,6 +67,11 @@ def training_payload(trainer) -> dict[str, Any]:
         "value_norm": trainer.value_norm.state_dict(),
         "envs": to_tensors(env.get_state()),
         "next_obs": torch.from_numpy(collector.next_obs.copy()),
+        # the envs of `more_envs` (other agent counts), in their order
+        "more_envs": [
+            {"envs": to_tensors(c.env.get_state()), "next_obs": torch.from_numpy(c.next_obs.copy())}
+            for c in trainer.collectors[1:]
+        ],
     }
 
 
@@ -119,7 +126,7 @@ def restore_training(trainer, payload: dict[str, Any], path: str | os.PathLike) 
 
 
 def _restore(trainer, payload: dict[str, Any]) -> None:
-    collector = trainer.collector
+    collector = trainer.collectors[0]
     load_weights(trainer.policy, payload["model"], "the checkpoint")
     collector.obs_norm.load_state_dict(payload["obs_norm"])
     trainer.value_norm.load_state_dict(payload["value_norm"])
@@ -137,8 +144,16 @@ def _restore(trainer, payload: dict[str, Any]) -> None:
         )
         collector.generator.manual_seed(trainer.config.seed + trainer.progress["updates"])
     collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
-    trainer.env.set_state(to_arrays(payload["envs"]))
-    collector.next_obs = payload["next_obs"].numpy().copy()
+    more = payload.get("more_envs", [])  # checkpoints before 2026-12-02: one env only
+    saved = [{"envs": payload["envs"], "next_obs": payload["next_obs"]}, *more]
+    if len(saved) != len(trainer.collectors):
+        raise CheckpointError(
+            f"the checkpoint holds the states of {len(saved)} env ids, the run trains on "
+            f"{len(trainer.collectors)}"
+        )
+    for own, state in zip(trainer.collectors, saved, strict=True):
+        own.env.set_state(to_arrays(state["envs"]))
+        own.next_obs = state["next_obs"].numpy().copy()
 
 
 def to_tensors(value: Any) -> Any:

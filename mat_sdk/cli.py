@@ -249,6 +249,7 @@ def parse_settings(values: tuple[str, ...], own: dict[str, str] | None = None) -
 
 TRAIN_OPTIONS = {
     "env": "the ENV_ID argument",
+    "more_envs": "the ENV_ID arguments after the first",
     "algo": "--algo",
     "num_envs": "--num-envs",
     "workers": "--workers",
@@ -260,13 +261,14 @@ TRAIN_OPTIONS = {
 }
 FINETUNE_OPTIONS = {
     "env": "the ENV_ID argument",
+    "more_envs": "the ENV_ID arguments after the first",
     "faults": "--fault NAME=zero|remove",
     "lr": "--lr",
 }
 
 
 @main.command()
-@click.argument("env_id")
+@click.argument("env_ids", nargs=-1, required=True)
 @click.option("--algo", default=TrainConfig.algo, show_default=True, help="mat | mat-dec | mappo")
 @click.option(
     "--steps", default=1_000_000, show_default=True, type=click.IntRange(min=1),
@@ -315,7 +317,7 @@ FINETUNE_OPTIONS = {
 @quiet_option()
 @user_errors
 def train(
-    env_id,
+    env_ids,
     algo,
     steps,
     num_envs,
@@ -333,6 +335,10 @@ def train(
     """Train a policy on ENV_ID with PPO (the paper's MA-MuJoCo recipe by default).
 
     \b
+    Several ids of one family (`mat envs` marks them) train one policy on every agent
+    count, updates taking the ids in turn: mat train swimmer-4 swimmer-5 swimmer-6
+
+    \b
     Writes OUT/checkpoint.pt (every 10 updates and at the end), OUT/metrics.csv,
     OUT/tensorboard/ and OUT/learning_curve.png.
     Example: mat train cheetah-6x1 --steps 2000000 --workers 2 --out runs/cheetah
@@ -348,6 +354,7 @@ def train(
     """
     from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
 
+    env_id = env_ids[0]
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
     ckpt = out / CHECKPOINT_NAME
     asked = {
@@ -362,6 +369,8 @@ def train(
         "ray": ray_address,
         **parse_settings(settings, TRAIN_OPTIONS),
     }
+    if len(env_ids) > 1:  # one policy on several counts of a family, updates in turn
+        asked["more_envs"] = list(env_ids[1:])
     if resume:
         if not ckpt.exists():
             raise FileNotFoundError(f"nothing to resume: {ckpt} does not exist")
@@ -379,7 +388,7 @@ def train(
                 f"{ckpt} exists; pass --resume to continue that run or choose another --out"
             )
         trainer = Trainer(asked.pop("env"), asked.pop("algo"), out_dir=out, **asked)
-    again = f"mat train {env_id} --out {out} --steps {steps} --resume"
+    again = f"mat train {' '.join(env_ids)} --out {out} --steps {steps} --resume"
     again += f" --workers {workers}" if workers else ""
     again += f" --update-workers {update_workers}" if update_workers else ""
     again += f" --device {device}" if device != "cpu" else ""
@@ -393,7 +402,7 @@ def _given_on_the_command_line(context: click.Context, asked: dict) -> dict:
     """The fields of `asked` the user set on this command line: typed options and --set."""
     from click.core import ParameterSource
 
-    parameters = {"env": "env_id", "faults": "faults", "ray": "ray_address"}
+    parameters = {"env": "env_ids", "faults": "faults", "ray": "ray_address"}
     given = {}
     for field, value in asked.items():
         parameter = parameters.get(field, field)

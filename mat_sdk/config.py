@@ -44,6 +44,9 @@ _RULES = (
 @dataclass
 class TrainConfig:
     env: str = "cheetah-6x1"
+    # Further env ids of one family (other agent counts, one observation size): updates
+    # alternate between `env` and these, so one policy learns every count.
+    more_envs: list[str] = field(default_factory=list)
     algo: str = "mat"
     faults: dict[str, str] = field(default_factory=dict)
     env_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"agent_id": False}
@@ -118,6 +121,10 @@ class TrainConfig:
                 raise ValueError(f"{f.name} must be a mapping such as {{...}}, got {value!r}")
             if f.type.startswith("str") and not isinstance(value, str):
                 raise ValueError(f"{f.name} must be a string, got {value!r}")
+            if f.type.startswith("list") and not (
+                isinstance(value, list) and all(isinstance(v, str) for v in value)
+            ):
+                raise ValueError(f"{f.name} must be a list of strings, got {value!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
@@ -169,13 +176,20 @@ class TrainConfig:
                 f"{self.update_workers + 1} ways; use fewer update workers or minibatches"
             )
 
-    def make_envs(self, num_envs: int | None = None, workers: int | None = None):
-        """The vectorised envs this config trains on (default: `num_envs` copies stepped by
-        `workers` processes), copy i seeded `seed + i`."""
+    @property
+    def env_ids(self) -> list[str]:
+        """Every env id trained on: `env`, then `more_envs`."""
+        return [self.env, *self.more_envs]
+
+    def make_envs(
+        self, num_envs: int | None = None, workers: int | None = None, env_id: str | None = None
+    ):
+        """The vectorised envs this config trains on (default: `num_envs` copies of `env`
+        stepped by `workers` processes), copy i seeded `seed + i`."""
         from mat_sdk import envs
 
         return envs.make_vec(
-            self.env,
+            env_id or self.env,
             self.num_envs if num_envs is None else num_envs,
             workers=self.workers if workers is None else workers,
             seed=self.seed,

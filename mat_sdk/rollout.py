@@ -38,10 +38,18 @@ class RolloutCollector:
         config: TrainConfig,
         device: torch.device | str = "cpu",
         seed: int | None = None,
+        share: RolloutCollector | None = None,
     ):
+        """`share`: act with that collector's normaliser, generators and ONNX actor (one
+        policy collecting on several envs, e.g. several agent counts of a family)."""
         self.env, self.policy, self.config = env, policy, config
         self.device = torch.device(device)
         seed = config.seed if seed is None else seed
+        self.next_obs = env.reset(seed=seed)
+        if share is not None:
+            self.obs_norm, self.generator = share.obs_norm, share.generator
+            self.shuffle_generator, self.onnx_actor = share.shuffle_generator, share.onnx_actor
+            return
         self.obs_norm = RunningMeanStd(env.obs_dim)
         self.generator = torch.Generator(self.device).manual_seed(seed)  # action sampling
         # agent orders here, minibatch permutations in the update: one stream, as saved
@@ -51,7 +59,6 @@ class RolloutCollector:
             from mat_sdk.onnx_actor import OnnxActor
 
             self.onnx_actor = OnnxActor(policy)
-        self.next_obs = env.reset(seed=seed)
 
     def observe(self, obs: np.ndarray, update: bool = False) -> Tensor:
         """Raw observations as the policy's input (normalised; `update`: fold them into the

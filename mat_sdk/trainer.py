@@ -33,6 +33,26 @@ from mat_sdk.rollout import RolloutCollector
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
 
 
+def check_family(vecs: list, algo: str) -> None:
+    """Refuse envs that one policy cannot train on together, saying why: they must share
+    observation size and action space (a family), and MAPPO its agent count."""
+    first = vecs[0]
+    for vec in vecs[1:]:
+        shape = (vec.obs_dim, vec.action_type, vec.action_size)
+        if shape != (first.obs_dim, first.action_type, first.action_size):
+            raise ValueError(
+                f"{vec.env_id} and {first.env_id} cannot train one policy: observation sizes "
+                f"{vec.obs_dim} and {first.obs_dim}, {vec.action_type} actions of size "
+                f"{vec.action_size} and {first.action_size}; give ids of one family "
+                "(`mat envs` marks families)"
+            )
+        if algo == "mappo" and vec.n_agents != first.n_agents:
+            raise ValueError(
+                f"MAPPO's centralised critic is tied to one agent count; {vec.env_id} has "
+                f"{vec.n_agents} agents, {first.env_id} {first.n_agents}"
+            )
+
+
 class TrainingDiverged(RuntimeError):
     """A loss became NaN or inf; the last good checkpoint is left as it was."""
 
@@ -61,8 +81,19 @@ class Trainer:
             from mat_sdk.ray_rollouts import RayRollouts
 
             self._remote = RayRollouts(cfg)
+        if cfg.more_envs and self._remote is not None:
+            raise ValueError("training on several env ids is not offered with Ray yet")
         # with Ray, one local copy: the env's shapes and names
-        self.env = cfg.make_envs(1, 0) if self._remote else cfg.make_envs()
+        self.envs = [cfg.make_envs(1, 0)] if self._remote else []
+        try:
+            for env_id in cfg.env_ids[len(self.envs) :]:
+                self.envs.append(cfg.make_envs(env_id=env_id))
+            check_family(self.envs, cfg.algo)
+        except BaseException:
+            for env in self.envs:
+                env.close()
+            raise
+        self.env = self.envs[0]  # the shapes and names: the first env's
         self.model_config = cfg.model_config(self.env)
         self.policy: Policy = build_policy(self.model_config).to(self.device)
         self.build_optimizer()
@@ -70,7 +101,11 @@ class Trainer:
             self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
         )
         self.value_norm = ValueNorm(device=self.device)
-        self.collector = RolloutCollector(self.env, self.policy, cfg, self.device)
+        first = RolloutCollector(self.env, self.policy, cfg, self.device)
+        self.collectors = [first] + [
+            RolloutCollector(env, self.policy, cfg, self.device, share=first)
+            for env in self.envs[1:]
+        ]
         self.progress = {"steps": 0, "updates": 0}
         self.out_dir = Path(out_dir) if out_dir is not None else None
 
@@ -83,6 +118,11 @@ class Trainer:
         )
 
     # ------------------------------------------------------------------ acting
+    @property
+    def collector(self) -> RolloutCollector:
+        """The collector of the next update: updates take the env ids in turn."""
+        return self.collectors[self.progress["updates"] % len(self.collectors)]
+
     @property
     def obs_norm(self) -> RunningMeanStd:
         return self.collector.obs_norm
@@ -253,7 +293,8 @@ class Trainer:
         train = dict(payload["config"]["train"])
         model = payload["config"]["model"]
         train.update(n_embd=model["n_embd"], n_head=model["n_head"], n_block=model["n_block"])
-        train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), **options)
+        train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), more_envs=[])
+        train.update(options)
         if lr is not None:
             train["lr"] = lr
         algo, trained_env = train.pop("algo"), train.pop("env")
@@ -281,7 +322,8 @@ class Trainer:
         return LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
 
     def close(self) -> None:
-        self.env.close()
+        for env in self.envs:
+            env.close()
         self.gradients.close()
         if self._remote is not None:
             self._remote.close()

@@ -1,5 +1,6 @@
 """PPO trainer: learning (honest, seconds), exact resume, crash safety, clear errors."""
 
+import json
 import os
 import re
 import signal
@@ -74,6 +75,7 @@ RESUMABLE = {
     "env workers": ("hopper-4x1", {"workers": 1}),
     "update workers": ("hopper-4x1", {"update_workers": 1}),
     "ONNX rollouts": ("hopper-4x1", {"rollout_backend": "onnx"}),
+    "several agent counts": ("swimmer-4", {"more_envs": ["swimmer-5", "swimmer-6"]}),
     "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
 }
 
@@ -91,6 +93,34 @@ def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, env_
         resumed.learn(120, progress_bar=False)
         assert_same_run(uninterrupted, finished_state(resumed), tmp_path / "a", tmp_path / "b")
     assert len(logged_rows(tmp_path / "a")) == 4
+
+
+def test_one_policy_trains_on_several_agent_counts_of_a_family(tmp_path):
+    from mat_export import export
+
+    run = {**TINY, "more_envs": ["swimmer-6"]}
+    with Trainer("swimmer-4", "mat", out_dir=tmp_path, **run) as trainer:
+        starts = [c.next_obs.copy() for c in trainer.collectors]
+        trainer.learn(60, progress_bar=False)  # two updates: one on each count
+        assert [c.env.n_agents for c in trainer.collectors] == [3, 5]
+        for collector, start in zip(trainer.collectors, starts, strict=True):
+            assert not np.array_equal(collector.next_obs, start)  # each count was stepped
+    manifest = export(tmp_path / "checkpoint.pt", tmp_path / "onnx", agent_counts=(1, 3))
+    assert manifest["agents"]["trained_counts"] == [3, 5]
+    on_disk = json.loads((tmp_path / "onnx" / "manifest.json").read_text())
+    assert on_disk["agents"]["trained_counts"] == [3, 5]
+
+
+@pytest.mark.parametrize(
+    ("ids", "algo", "problem"),
+    [
+        (["swimmer-4", "cheetah-6x1"], "mat", "cannot train one policy: observation sizes"),
+        (["swimmer-4", "swimmer-5"], "mappo", "MAPPO's centralised critic is tied to one"),
+    ],
+)
+def test_ids_that_cannot_share_a_policy_are_refused(ids, algo, problem):
+    with pytest.raises(ValueError, match=problem):
+        Trainer(ids[0], algo, more_envs=ids[1:], **TINY)
 
 
 def test_resume_repairs_a_torn_or_header_only_metrics_file(tmp_path):
