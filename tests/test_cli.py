@@ -8,6 +8,7 @@ import click
 import numpy as np
 from click.testing import CliRunner
 
+from mat_sdk import checkpoint
 from mat_sdk.cli import main
 
 
@@ -66,6 +67,23 @@ TINY_TRAIN = [
     '{"episode_limit": 20}'.join(["env_options=", ""]),
     "--quiet",
 ]
+
+
+def test_train_on_several_agent_counts_resume_and_eval_on_another(tmp_path):
+    out, runner = tmp_path / "run", CliRunner()
+    ids = ["swimmer-4", "swimmer-5"]
+    first = runner.invoke(main, ["train", *ids, "--steps", "40", "--out", str(out), *TINY_TRAIN])
+    assert first.exit_code == 0, first.output
+    train = checkpoint.load(out / "checkpoint.pt")["config"]["train"]
+    assert (train["env"], train["more_envs"]) == ("swimmer-4", ["swimmer-5"])
+    other = runner.invoke(main, ["train", "swimmer-4", "swimmer-7", "--out", str(out), "--resume"])
+    assert other.exit_code != 0 and "more_envs=['swimmer-5']" in other.output
+    resumed = runner.invoke(main, ["train", *ids, "--steps", "80", "--out", str(out), "--resume"])
+    assert resumed.exit_code == 0 and "resuming" in resumed.output
+    evaluated = runner.invoke(
+        main, ["eval", str(out / "checkpoint.pt"), "--episodes", "2", "--env", "swimmer-9"]
+    )
+    assert evaluated.exit_code == 0 and "+-" in evaluated.output, evaluated.output
 
 
 def test_train_resume_and_eval_from_the_command_line(tmp_path):
