@@ -128,6 +128,24 @@ def test_one_hot_agent_id_and_swimmer_obs_size_independent_of_n():
     assert envs.make_team("hopper-4x1", agent_id=False).obs_dim == 11
 
 
+@pytest.mark.parametrize("family", ["swimmer-{}", "mamujoco:ManySegmentSwimmer-{}x2"])
+def test_count_independent_positions_keep_one_observation_size(family):
+    for position, width in (("fraction", 1), ("ends", 2)):
+        teams = [envs.make_team(family.format(n), position=position) for n in (4, 7)]
+        plain = envs.make_team(family.format(4)).obs_dim
+        assert {t.obs_dim for t in teams} == {plain + width}
+        features = teams[1].reset(seed=0)[:, -width:]
+        count = teams[1].n_agents
+        if position == "fraction":
+            assert np.allclose(features[:, 0], np.linspace(0, 1, count))
+        else:
+            assert np.allclose(features[0], [1, 1 / count]) and np.allclose(
+                features[-1], [1 / count, 1]
+            )
+    with pytest.raises(ValueError, match="position must be one of"):
+        envs.make_team(family.format(4), position="middle")
+
+
 @pytest.mark.parametrize(
     ("family", "counts", "size"),
     [("ManySegmentSwimmer", (3, 4, 8), 6), ("ManySegmentAnt", (2, 4), 115)],

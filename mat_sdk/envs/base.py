@@ -21,6 +21,24 @@ def checked_episode_limit(given: int | None, default: int) -> int:
     return int(given)
 
 
+# Count-independent identities: an agent's place in the team's order (a chain's head first),
+# as "fraction": i / (N - 1), or "ends": 1 / (1 + i) and 1 / (N - i), closeness to each end.
+# Unlike a one-hot id, neither changes the observation size with N.
+POSITIONS = ("fraction", "ends")
+
+
+def position_features(position: str | None, count: int) -> np.ndarray:
+    """`[count, 0, 1 or 2]` features of each agent's place in a team of `count` agents."""
+    if position is None:
+        return np.zeros((count, 0))
+    index = np.arange(count, dtype=np.float64)
+    if position == "fraction":
+        return (index / max(count - 1, 1))[:, None]
+    if position == "ends":
+        return np.stack([1.0 / (1 + index), 1.0 / (count - index)], axis=1)
+    raise ValueError(f"position must be one of {POSITIONS} or None, got {position!r}")
+
+
 def as_array(actions) -> np.ndarray:
     """`actions` as given, as an array (no conversion of its values), or ValueError."""
     try:

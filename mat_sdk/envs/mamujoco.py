@@ -24,6 +24,7 @@ from mat_sdk.envs.base import (
     checked_episode_limit,
     diverged,
     end_diverged,
+    position_features,
     render_failed,
 )
 
@@ -47,6 +48,7 @@ class MaMuJoCoTeam(ArrayTeam):
         agent_id: bool | None = None,
         agent_obsk: int | None = None,
         episode_limit: int | None = None,
+        position: str | None = None,
     ):
         # Its import prints a notice about Adroit envs, which this SDK never uses.
         with contextlib.redirect_stderr(io.StringIO()):
@@ -77,7 +79,10 @@ class MaMuJoCoTeam(ArrayTeam):
         self.action_width = int(self.action_widths.max())
         self.action_size = self.action_width
         self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.agents]
+        self._raw_obs_width = max(self._raw_obs_dims)
         self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
+        self._positions = position_features(position, self.n_agents)  # [n, 0..2]
+        self.obs_dim += self._positions.shape[1]
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
         self.episode_limit = checked_episode_limit(episode_limit, spec_limit or 1000)
@@ -195,5 +200,8 @@ class MaMuJoCoTeam(ArrayTeam):
         for row, name in enumerate(self.agents):
             packed[row, : self._raw_obs_dims[row]] = obs[name]
             if self.agent_id:
-                packed[row, -self.n_agents + row] = 1.0
+                start = self._raw_obs_width
+                packed[row, start + row] = 1.0
+        if self._positions.shape[1]:
+            packed[:, -self._positions.shape[1] :] = self._positions
         return packed

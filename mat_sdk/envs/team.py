@@ -7,7 +7,8 @@ costs little more than the physics itself.
 
 Observation of an agent, in order (each block zero-padded to the widest agent's):
 own joints' qpos | own qvel | upstream neighbours' qpos | qvel | downstream qpos | qvel |
-shared features (root height/orientation/velocities, task features) | one-hot agent id.
+shared features (root height/orientation/velocities, task features) | one-hot agent id |
+position (`base.POSITIONS`, when asked for).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from mat_sdk.envs.base import (
     checked_episode_limit,
     diverged,
     end_diverged,
+    position_features,
     render_failed,
 )
 from mat_sdk.envs.decomposition import (
@@ -56,8 +58,10 @@ class RobotTeam(ArrayTeam):
         hops: int | None = None,
         episode_limit: int | None = None,
         task: str | None = None,
+        position: str | None = None,
     ):
-        """Options left as None take the spec's (`RobotSpec.hops`, ...)."""
+        """Options left as None take the spec's (`RobotSpec.hops`, ...). `position` appends
+        an identity that does not depend on the agent count (`base.POSITIONS`)."""
         self.spec = spec
         self.env_id = spec.env_id
         self._env = spec.load(seed, task)
@@ -71,6 +75,8 @@ class RobotTeam(ArrayTeam):
         agent_id = spec.agent_id if agent_id is None else agent_id
         self.agent_id = (not spec.variable_count) if agent_id is None else bool(agent_id)
 
+        position_features(position, 1)  # refuses an unknown kind now
+        self.position = position
         self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
         self.possible_agents = spec.names()
         self.faults = dict(faults or {})
@@ -150,6 +156,8 @@ class RobotTeam(ArrayTeam):
         nq, nv = model.nq, model.nv
         n_extra = len(self._extra_features())
         zero, one = nq + nv + n_extra, nq + nv + n_extra + 1
+        constants = [0.0, 1.0]  # then each agent's position features, if any
+        positions = position_features(self.position, len(self.team))
 
         def qpos(joints):
             return [int(i) for j in joints for i in joint_qpos_indices(model, j)]
@@ -175,6 +183,9 @@ class RobotTeam(ArrayTeam):
             row += shared
             if self.agent_id:
                 row += [one if i == agent else zero for i in range(len(self.team))]
+            for value in positions[agent]:
+                row.append(zero + len(constants))
+                constants.append(float(value))
             rows.append(row)
         self._obs_index = np.array(rows, dtype=np.intp)
         self.obs_dim = self._obs_index.shape[1]
@@ -184,7 +195,7 @@ class RobotTeam(ArrayTeam):
             [*kept_qpos, *range(nq, nq + nv), *range(nq + nv, nq + nv + n_extra)], dtype=np.intp
         )
         self.state_dim = len(self._state_index)
-        self._zero_one = np.array([0.0, 1.0])
+        self._constants = np.array(constants)
 
     def _extra_features(self) -> np.ndarray:
         features = self.spec.task_features
@@ -221,7 +232,7 @@ class RobotTeam(ArrayTeam):
 
     def observe(self) -> np.ndarray:
         source = np.concatenate(
-            (self._data.qpos, self._data.qvel, self._extra_features(), self._zero_one)
+            (self._data.qpos, self._data.qvel, self._extra_features(), self._constants)
         )
         return source[self._obs_index].astype(np.float32)
 
