@@ -613,7 +613,7 @@ def bench_envs(seconds: float) -> None:
     "--scaling/--no-scaling",
     default=True,
     show_default=True,
-    help="Also the runtime alone at n = 64, 256, 1024: time ratios and the memory acting at n adds.",
+    help="Also the runtime alone at n = 64, 256, 1024: time ratios, memory added.",
 )
 @user_errors
 def bench_runtime(seconds: float, agents: str, scaling: bool) -> None:
