@@ -610,13 +610,12 @@ def bench_envs(seconds: float) -> None:
     "--agents", default="2,6,17,64,256", show_default=True, help="Comma-separated agent counts."
 )
 @click.option(
-    "--scaling/--no-scaling",
-    default=True,
-    show_default=True,
-    help="Also the runtime alone at n = 64, 256, 1024: time ratios, memory added.",
+    "--no-scaling",
+    is_flag=True,
+    help="Leave out the runtime alone at n = 64, 256, 1024 (time ratios, memory added).",
 )
 @user_errors
-def bench_runtime(seconds: float, agents: str, scaling: bool) -> None:
+def bench_runtime(seconds: float, agents: str, no_scaling: bool) -> None:
     """One control step: mat_runtime vs the official re-decode, torch cached, step graph.
 
     \b
@@ -625,7 +624,7 @@ def bench_runtime(seconds: float, agents: str, scaling: bool) -> None:
     """
     from mat_sdk.bench.runtime import main as run
 
-    run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds, scale=scaling)
+    run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds, scale=not no_scaling)
 
 
 @bench.command("scaling")
