@@ -436,8 +436,13 @@ def _check_tutorial(tmp_path: Path, shorten: bool) -> dict[str, str]:
     cwd, outputs = _workdir(tmp_path), {}
     commands = _tutorial_commands()
     assert len(commands) == 7
-    if shorten:  # the robot's, one update: learning is tested above, by recipe
-        commands = [re.sub(r"--steps \d+", "--steps 1", c) for c in commands if "spread" not in c]
+    if shorten:  # the robot's to its export and controller, one update: learning is tested
+        # above, by recipe; fine-tuning by its own tests
+        commands = [
+            re.sub(r"--steps \d+", "--steps 1", c)
+            for c in commands
+            if "spread" not in c and "finetune" not in c
+        ]
     for command in commands:
         done = _run(command, cwd)
         assert done.returncode == 0, f"{command}\n{done.stdout}\n{done.stderr}"
@@ -456,13 +461,13 @@ def test_every_tutorial_command_runs_with_the_ids_it_names(tmp_path):
     """module:function ids through mat train, eval, export and the controller (subprocesses)."""
     outputs = _check_tutorial(tmp_path, shorten=True)
     assert "over 8 episodes" in outputs["eval runs/arm/checkpoint.pt"]
-    assert (tmp_path / "runs/arm-no-wrist/checkpoint.pt").is_file()
 
 
 @pytest.mark.slow
 def test_the_tutorial_as_written_trains_an_arm_that_beats_a_random_team(tmp_path):
     outputs = _check_tutorial(tmp_path, shorten=False)
     assert "over 16 episodes" in outputs["eval runs/spread/checkpoint.pt"]
+    assert (tmp_path / "runs/arm-no-wrist/checkpoint.pt").is_file()
     found = re.search(r"return (-?[\d.]+) \+-", outputs["eval runs/arm/checkpoint.pt"])
     assert float(found.group(1)) >= seeds.beats_random(seeds.ARM_ENV, seeds.ARM_FRACTION)
 
@@ -494,8 +499,13 @@ def test_an_installed_package_registers_ids_that_mat_envs_lists(tmp_path):
         [sys.executable, "-m", "mat_sdk", "envs"], env=environment, capture_output=True, text=True
     )
     assert listed.returncode == 0, listed.stderr
-    row = next(line for line in listed.stdout.splitlines() if line.startswith("arm-2 "))
-    assert row.split()[1:4] == ["2", "10", "2"]  # agents, obs size, action size
+    rows = {line.split()[0]: line.split()[1:] for line in listed.stdout.splitlines()[3:]}
+    assert rows["arm-2"][:3] == ["2", "10", "2"]  # agents, obs size, action size
+    families = {name for name, row in rows.items() if "[family]" in row}
+    assert families == {
+        "swimmer-3", "swimmer-6", "swimmer-15",
+        "mamujoco:ManySegmentSwimmer-4x2", "mamujoco:ManySegmentAnt-3x2",
+    }  # fmt: skip
     built = subprocess.run(
         [sys.executable, "-c", "from mat_sdk import envs; print(envs.make_team('arm-2').agents)"],
         env=environment, capture_output=True, text=True,
