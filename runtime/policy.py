@@ -51,10 +51,18 @@ BATCH_DISABLED_OPTIMIZERS = ["SkipLayerNormFusion"]
 
 
 def session(
-    graph: bytes, threads: int = 1, providers: list[str] | None = None, batched: bool = False
+    graph: bytes,
+    threads: int = 1,
+    providers: list[str] | None = None,
+    batched: bool = False,
+    spin: bool = False,
 ) -> ort.InferenceSession:
     """An ONNX Runtime session set up for control steps: sequential, `threads` intra-op
     threads, all graph optimisations (less `BATCH_DISABLED_OPTIMIZERS` when `batched`).
+
+    `spin`: with `threads` > 1, the intra-op threads busy-wait for work between calls (ONNX
+    Runtime's own default) instead of sleeping. Off here: a controller acts once per tick
+    and idles between, and spinning threads would burn those cores (BENCHMARKS.md).
 
     Memory reuse is off: ONNX Runtime then gives every intermediate tensor its own buffer
     instead of planning which can share one. The tensors here are a few KB, and at B = 1 a
@@ -66,6 +74,7 @@ def session(
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.enable_mem_reuse = False
     options.log_severity_level = 3  # warnings about unused initializers are not the user's
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
     return ort.InferenceSession(
         graph,
         options,
@@ -106,15 +115,24 @@ class Policy:
         self._local = threading.local()  # each thread's bound buffers (`_Bound`)
 
     @classmethod
-    def load(cls, path: str | Path, threads: int = 1, providers: list[str] | None = None) -> Policy:
+    def load(
+        cls,
+        path: str | Path,
+        threads: int = 1,
+        providers: list[str] | None = None,
+        spin: bool = False,
+    ) -> Policy:
         """Verify the bundle (format, version, sha256 of each graph), then build the sessions.
 
         `threads`: ONNX Runtime intra-op threads; 1 is fastest for MAT's small kernels and
         keeps the controller's other cores free. `providers`: ONNX Runtime execution providers
-        (default CPU).
+        (default CPU). `spin`: let the intra-op threads (threads > 1) busy-wait between calls
+        instead of sleeping; off by default, for a controller that idles between ticks.
         """
-        if not isinstance(threads, int) or threads < 1:
+        if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
             raise InputError(f"threads must be an int >= 1, got {threads!r}")
+        if not isinstance(spin, bool):
+            raise InputError(f"spin must be True or False, got {spin!r}")
         available = ort.get_available_providers()
         providers = list(providers or ["CPUExecutionProvider"])
         unknown = [p for p in providers if p not in available]
@@ -126,7 +144,9 @@ class Policy:
             entry, file = bundle.manifest["graphs"][name], bundle.path / name
             agents = entry.get("agents")
             for batched in (False, True):  # the same graph, two optimisation settings
-                opened = _open_session(file, entry["opset"], data, threads, providers, batched)
+                opened = _open_session(
+                    file, entry["opset"], data, threads, providers, batched, spin
+                )
                 sessions[(agents, batched)] = opened
             _check_graph(file, opened, bundle.manifest, agents)
         return cls(bundle.path, bundle.manifest, sessions)

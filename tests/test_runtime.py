@@ -273,6 +273,21 @@ def _edit_manifest(directory, **fields):
     (directory / "manifest.json").write_text(json.dumps(manifest))
 
 
+def test_spinning_is_a_choice_at_load_and_off_by_default(bundles):
+    bundle = bundles["mat"][1]
+    obs = _obs(Policy.load(bundle), 6)
+    expected = Policy.load(bundle).act(obs)
+    for spin, entry in ((None, "0"), (False, "0"), (True, "1")):
+        options = {} if spin is None else {"spin": spin}
+        policy = Policy.load(bundle, threads=2, **options)
+        for opened in policy._sessions.values():
+            settings = opened.get_session_options()
+            assert settings.get_session_config_entry("session.intra_op.allow_spinning") == entry
+        assert np.allclose(policy.act(obs), expected, atol=1e-6)  # the same actions either way
+    with pytest.raises(InputError, match="spin must be True or False, got 'yes'"):
+        Policy.load(bundle, spin="yes")
+
+
 def test_one_policy_serves_several_threads(bundles):
     policy = Policy.load(bundles["mat"][1])
     inputs = [_obs(policy, n, seed=n) for n in (1, 2, 6, 17) * 3]

@@ -149,6 +149,41 @@ def _scaling(bundle: Path, obs_dim: int, seconds: float) -> dict[int, float]:
     return {n: float(np.median(times[n])) for n in SCALING}
 
 
+def idle_cpu_ms(policy: Policy, obs: np.ndarray, idle: float = 0.01, rounds: int = 50) -> float:
+    """CPU milliseconds the process burns while it idles `idle` seconds after an act, as a
+    controller does between ticks (spinning threads keep burning)."""
+    burned = 0.0
+    for _ in range(rounds):
+        policy.act(obs)
+        start = time.process_time()
+        time.sleep(idle)
+        burned += time.process_time() - start
+    return burned / rounds * 1e3
+
+
+def spinning(bundle: Path, obs_dim: int, seconds: float, n: int = 6) -> list[dict]:
+    """act's latency back-to-back and the CPU burned while idle, spin off and on, 1 and 2
+    ONNX Runtime threads, interleaved."""
+    obs = np.random.default_rng(0).standard_normal((n, obs_dim)).astype(np.float32)
+    loaded = {
+        (threads, spin): Policy.load(bundle, threads=threads, spin=spin)
+        for threads in (1, 2)
+        for spin in (False, True)
+    }
+    times = latencies({key: lambda p=p: p.act(obs) for key, p in loaded.items()}, seconds)
+    return [
+        {
+            "threads": threads,
+            "spin": "on" if spin else "off",
+            "act p50 / p99 (µs)": f"{_us(np.median(times[key]))} / "
+            f"{_us(np.percentile(times[key], 99))}",
+            "CPU burned per 10 ms idle (ms)": f"{idle_cpu_ms(loaded[key], obs):.2f}",
+        }
+        for key in loaded
+        for threads, spin in [key]
+    ]
+
+
 def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
     """The table of variants at `agent_counts`; with `scale`, the runtime alone at
     n = 64, 256, 1024 (the other variants are O(n^2) or Python loops: minutes at 1,024)."""
@@ -193,6 +228,10 @@ def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
                         }
                     )
     print_table(rows, f"One control step, one thread — {machine()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle, policy = _bundle(Path(tmp), **SIZES["1 block, 1 head"])
+        table = spinning(bundle, policy.cfg.obs_dim, seconds)
+    print_table(table, "Spinning (Policy.load(spin=...)), 1 block, n = 6")
     if scaling:
         print_table(
             scaling, "Scaling in n: the runtime alone, interleaved (linear: t(n)/t(n/4) = 4)"
