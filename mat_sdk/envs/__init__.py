@@ -142,7 +142,7 @@ def list_envs() -> list[dict[str, Any]]:
                 "act": team.action_size,  # discrete: the number of choices
                 "episode_limit": team.episode_limit,
                 "about": getattr(spec, "description", "") or team.description,
-                "family": bool(getattr(spec, "variable_count", getattr(team, "variable_count", 0))),
+                "family": team.variable_count,
             }
         )
         close = getattr(team, "close", None)

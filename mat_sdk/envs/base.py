@@ -138,6 +138,7 @@ class ArrayTeam:
     # Teams whose agents may leave mid-episode or have unavailable choices set `masks` and
     # keep `active [n]` and `available [n, action_size]` up to date (PettingZoo envs).
     masks: bool = False
+    variable_count: bool = False  # a family: one observation size for any agent count
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
         """Apply `actions [n_agents, action_width]`; returns obs, reward, terminated, truncated.

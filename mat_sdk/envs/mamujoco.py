@@ -200,8 +200,7 @@ class MaMuJoCoTeam(ArrayTeam):
         for row, name in enumerate(self.agents):
             packed[row, : self._raw_obs_dims[row]] = obs[name]
             if self.agent_id:
-                start = self._raw_obs_width
-                packed[row, start + row] = 1.0
+                packed[row, self._raw_obs_width + row] = 1.0
         if self._positions.shape[1]:
             packed[:, -self._positions.shape[1] :] = self._positions
         return packed

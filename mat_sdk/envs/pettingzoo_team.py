@@ -81,14 +81,15 @@ def from_pettingzoo(
     return spec
 
 
-def _observation_box(space, agent: str) -> tuple[spaces.Box, bool]:
-    """The agent's observation Box, and whether it comes with an `action_mask`."""
-    if isinstance(space, spaces.Dict) and "observation" in space.spaces:
-        unknown = set(space.spaces) - {"observation", "action_mask"}
-        if not unknown:
-            return _observation_box(space["observation"], agent)[0], "action_mask" in space.spaces
+def _observation_box(space, agent: str) -> spaces.Box:
+    """The agent's observation Box (inside a Dict that also holds its `action_mask`)."""
+    if isinstance(space, spaces.Dict) and set(space.spaces) in (
+        {"observation"},
+        {"observation", "action_mask"},
+    ):
+        return _observation_box(space["observation"], agent)
     if isinstance(space, spaces.Box) and len(space.shape) == 1:
-        return space, False
+        return space
     raise ValueError(f"{agent}: observation space {space} is not supported; supported: {SUPPORTED}")
 
 
@@ -117,8 +118,7 @@ class PettingZooTeam(ArrayTeam):
         self.n_agents = len(self.agents)
         self.agent_id = spec.agent_id if agent_id is None else bool(agent_id)
         observed = [_observation_box(self._env.observation_space(a), a) for a in self.agents]
-        self._obs_sizes = [box.shape[0] for box, _ in observed]
-        self._masked_in_obs = any(has_mask for _, has_mask in observed)
+        self._obs_sizes = [box.shape[0] for box in observed]
         self.obs_dim = max(self._obs_sizes) + (self.n_agents if self.agent_id else 0)
         self._set_up_actions([self._env.action_space(a) for a in self.agents])
         self.state_dim = self._state_size()
@@ -185,11 +185,8 @@ class PettingZooTeam(ArrayTeam):
         obs, rewards, terminations, _, infos = self._env.step(self._per_agent(actions))
         self._steps += 1
         given = [float(rewards[a]) for a in live if a in rewards]
-        reward = (
-            0.0
-            if not given
-            else float(np.sum(given) if self.spec.team_reward == "sum" else np.mean(given))
-        )
+        combine = np.sum if self.spec.team_reward == "sum" else np.mean
+        reward = float(combine(given)) if given else 0.0
         packed = self._read(obs, infos)
         if self._env.agents and self._steps < self.episode_limit:
             return packed, reward, False, False
@@ -213,14 +210,16 @@ class PettingZooTeam(ArrayTeam):
         return per_agent
 
     def _read(self, obs: Mapping[str, Any], infos: Mapping[str, Any]) -> np.ndarray:
-        """The padded observations; updates `active` and `available`."""
+        """The padded observations; updates `active` and (discrete) `available`."""
         self._obs[:] = 0.0
-        self.available[:] = 0.0
+        discrete = self.action_type == "discrete"
         for row, name in enumerate(self.possible_agents):
             present = name in obs and name in self._env.agents
             self.active[row] = float(present)
             if not present:
-                self.available[row, 0] = 1.0  # a gone agent's placeholder choice
+                if discrete:
+                    self.available[row] = 0.0
+                    self.available[row, 0] = 1.0  # a gone agent's placeholder choice
                 continue
             value, mask = obs[name], infos.get(name, {}).get("action_mask")
             if isinstance(value, Mapping):
@@ -228,14 +227,14 @@ class PettingZooTeam(ArrayTeam):
             self._obs[row, : self._obs_sizes[row]] = np.asarray(value, np.float32).reshape(-1)
             if self.agent_id:
                 self._obs[row, -self.n_agents + row] = 1.0
-            self._set_available(row, mask)
+            if discrete:
+                self._set_available(row, mask)
         return self._obs.copy()
 
     def _set_available(self, row: int, mask) -> None:
-        if self.action_type != "discrete":
-            self.available[row] = 1.0
-            return
+        """An agent's own choices (all of them, or those its `action_mask` allows)."""
         own = int(self._choices[row])
+        self.available[row] = 0.0
         self.available[row, :own] = 1.0 if mask is None else np.asarray(mask, np.float32)[:own]
         if not self.available[row].any():
             raise ValueError(

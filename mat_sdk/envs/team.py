@@ -75,8 +75,8 @@ class RobotTeam(ArrayTeam):
         agent_id = spec.agent_id if agent_id is None else agent_id
         self.agent_id = (not spec.variable_count) if agent_id is None else bool(agent_id)
 
-        position_features(position, 1)  # refuses an unknown kind now
-        self.position = position
+        self.variable_count = spec.variable_count
+        self._positions = position_features(position, len(spec.groups))
         self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
         self.possible_agents = spec.names()
         self.faults = dict(faults or {})
@@ -157,7 +157,6 @@ class RobotTeam(ArrayTeam):
         n_extra = len(self._extra_features())
         zero, one = nq + nv + n_extra, nq + nv + n_extra + 1
         constants = [0.0, 1.0]  # then each agent's position features, if any
-        positions = position_features(self.position, len(self.team))
 
         def qpos(joints):
             return [int(i) for j in joints for i in joint_qpos_indices(model, j)]
@@ -183,7 +182,7 @@ class RobotTeam(ArrayTeam):
             row += shared
             if self.agent_id:
                 row += [one if i == agent else zero for i in range(len(self.team))]
-            for value in positions[agent]:
+            for value in self._positions[agent]:
                 row.append(zero + len(constants))
                 constants.append(float(value))
             rows.append(row)
