@@ -208,15 +208,19 @@ def arm_return(seed: int = 0) -> float:
 
 
 def spread_return(
-    seed: int = 0, env_id: str = "mpe_envs:spread", steps: int = SPREAD_STEPS
+    seed: int = 0,
+    env_id: str = "mpe_envs:spread",
+    steps: int = SPREAD_STEPS,
+    algo: str = "mat",
+    out_dir: str | Path | None = None,
 ) -> float:
-    """MAT on MPE simple_spread through from_pettingzoo: the mean return of 32 evaluation
-    episodes (deterministic) after training; a start's layout alone swings a return by
-    several units, so a few training episodes would not tell."""
+    """MAT (or `algo`) on MPE simple_spread through from_pettingzoo: the mean return of 32
+    evaluation episodes (deterministic) after training; a start's layout alone swings a
+    return by several units, so a few training episodes would not tell."""
     from mat_sdk.trainer import Trainer
 
     with_examples()
-    with Trainer(env_id, "mat", seed=seed, **SPREAD) as trainer:
+    with Trainer(env_id, algo, out_dir=out_dir, seed=seed, **SPREAD) as trainer:
         trainer.learn(steps, progress_bar=False)
         return float(np.mean(trainer.evaluate(SPREAD_EVALUATIONS)))
 

@@ -12,10 +12,9 @@ the same way for the built-in robots, which are `RobotSpec`s too (`robots.py`).
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -195,7 +194,6 @@ class ModelEnvironment:
     terminate: Callable[[Any], bool] | None = None
     substeps: int = 1
     reset_noise: float = 0.1
-    time_limit: float = field(default=math.inf)
 
     def physics(self) -> dm_mujoco.Physics:
         """The compiled model; a path keeps its directory for included files and meshes."""
@@ -208,7 +206,9 @@ class ModelEnvironment:
             self.reward, self.terminate, self.reset_noise, np.random.RandomState(seed)
         )
         return control.Environment(
-            self.physics(), task, time_limit=self.time_limit, n_sub_steps=self.substeps
+            self.physics(),
+            task,
+            n_sub_steps=self.substeps,  # no time limit: episode_limit
         )
 
 
