@@ -158,6 +158,38 @@ def test_mamujoco_families_have_one_observation_size_for_every_count(family, cou
     assert not envs.make_team("mamujoco:HalfCheetah-6x1").variable_count
 
 
+def test_padding_to_a_maximum_count_adds_inactive_zero_agents_that_change_nothing():
+    plain = envs.make_team("mamujoco:ManySegmentSwimmer-3x2", agent_id=True)
+    padded = envs.make_team("mamujoco:ManySegmentSwimmer-3x2", agent_id=True, pad_agents=6)
+    assert (padded.n_agents, padded.obs_dim, padded.masks) == (6, 6 + 6, True)
+    assert list(padded.active) == [1, 1, 1, 0, 0, 0]
+    obs, obs_padded = plain.reset(seed=3), padded.reset(seed=3)
+    assert np.array_equal(obs_padded[:3, :5], obs[:, :5])  # own features, then a 6-entry id
+    assert np.array_equal(obs_padded[:3, 6:], np.eye(3, 6)) and not obs_padded[3:].any()
+    actions = np.random.default_rng(0).uniform(-1, 1, (6, 2))
+    step, step_padded = plain.step(actions[:3]), padded.step(actions)  # padding's are dropped
+    assert step[1] == step_padded[1] and np.array_equal(step_padded[0][:3, :5], step[0][:, :5])
+    vec = envs.make_vec("mamujoco:ManySegmentSwimmer-3x2", 2, pad_agents=5)
+    vec.reset(seed=0)
+    assert vec.active().tolist() == [[1, 1, 1, 0, 0]] * 2
+    with pytest.raises(ValueError, match="pad_agents=2 is fewer than the 3 agents"):
+        envs.make_team("mamujoco:ManySegmentSwimmer-3x2", pad_agents=2)
+
+
+def test_family_envs_build_in_parallel_processes():
+    """Gymnasium-Robotics writes a family's model to one fixed file and deletes it after
+    loading; processes building the same K at once must not collide."""
+    script = (
+        "from mat_sdk.envs import make_team\n"
+        "for _ in range(8): make_team('mamujoco:ManySegmentSwimmer-4x2')\n"
+    )
+    runs = [
+        subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE) for _ in range(4)
+    ]
+    errors = [run.communicate()[1].decode() for run in runs]
+    assert [run.returncode for run in runs] == [0] * 4, errors
+
+
 def test_fast_reward_equals_the_suite_task_reward():
     team = envs.make_team("cheetah-6x1", seed=0)
     team.reset(seed=0)

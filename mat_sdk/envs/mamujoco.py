@@ -7,14 +7,21 @@ numbers (the paper's MAT reaches about 9,000 there). Defaults follow the paper's
 `ManySegmentSwimmer-Kx2` and `ManySegmentAnt-Kx2` are families: one observation size for
 every K, so one policy can serve any count. They default to `agent_obsk=1` and no one-hot id
 (which would tie the observation size to K).
+
+`pad_agents=M` is the official MAT code's answer to a changing count, kept as a baseline:
+every K is padded to M agents whose observations are zero, whose actions are dropped and
+who are inactive (`masks`), so the loss skips them; a one-hot id then has M entries.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import io
 import re
+import tempfile
 from collections.abc import Mapping
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -33,6 +40,22 @@ _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
 FAMILIES = ("ManySegmentSwimmer", "ManySegmentAnt")  # any K: mamujoco:<family>-Kx2
 
 
+@contextlib.contextmanager
+def _asset_lock(needed: bool):
+    """Hold a lock across processes while a family env is built: Gymnasium-Robotics writes
+    each family's model to one fixed file inside its package and deletes it after loading,
+    so two processes building the same K at once (env workers, parallel runs) collide."""
+    if not needed:
+        yield
+        return
+    with open(Path(tempfile.gettempdir()) / "mat_sdk-mamujoco-assets.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 class MaMuJoCoTeam(ArrayTeam):
     """A MaMuJoCo scenario with the array API of `RobotTeam` (obs padded to one size)."""
 
@@ -49,6 +72,7 @@ class MaMuJoCoTeam(ArrayTeam):
         agent_obsk: int | None = None,
         episode_limit: int | None = None,
         position: str | None = None,
+        pad_agents: int | None = None,
     ):
         # Its import prints a notice about Adroit envs, which this SDK never uses.
         with contextlib.redirect_stderr(io.StringIO()):
@@ -65,23 +89,26 @@ class MaMuJoCoTeam(ArrayTeam):
             agent_obsk = 1 if self.variable_count else 0
         self.env_id = env_id
         try:
-            self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
+            with _asset_lock(self.variable_count):
+                self._env = mamujoco_v1.parallel_env(scenario, conf, agent_obsk=agent_obsk)
         except Exception as error:  # "Custom env not implemented!", "UNKNOWN partitioning ..."
             raise ValueError(
                 f"{env_id!r}: Gymnasium-Robotics' MaMuJoCo has no scenario {scenario!r} with "
                 f"partition {conf!r} ({error}); e.g. mamujoco:HalfCheetah-6x1, mamujoco:Ant-4x2"
             ) from None
         self.possible_agents = list(self._env.possible_agents)
-        self.agents = self.possible_agents
+        self._real = len(self.possible_agents)  # agents of the scenario; the rest are padding
+        self.agents = self.possible_agents + self._padding(pad_agents)
         self.n_agents = len(self.agents)
         self.agent_id = (not self.variable_count) if agent_id is None else bool(agent_id)
-        self.action_widths = np.array([self._env.action_space(a).shape[0] for a in self.agents])
+        widths = [self._env.action_space(a).shape[0] for a in self.possible_agents]
+        self.action_widths = np.array(widths + [max(widths)] * (self.n_agents - self._real))
         self.action_width = int(self.action_widths.max())
         self.action_size = self.action_width
-        self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.agents]
+        self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.possible_agents]
         self._raw_obs_width = max(self._raw_obs_dims)
         self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
-        self._positions = position_features(position, self.n_agents)  # [n, 0..2]
+        self._positions = position_features(position, self._real)  # [agents, 0..2]
         self.obs_dim += self._positions.shape[1]
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
@@ -91,6 +118,22 @@ class MaMuJoCoTeam(ArrayTeam):
         self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
         self._steps = 0
+
+    def _padding(self, pad_agents: int | None) -> list[str]:
+        """The names of the padding agents `pad_agents` asks for (none if None); sets masks."""
+        if pad_agents is None:
+            return []
+        if isinstance(pad_agents, bool) or not isinstance(pad_agents, int | np.integer):
+            raise ValueError(f"pad_agents must be an integer agent count, got {pad_agents!r}")
+        if pad_agents < self._real:
+            raise ValueError(
+                f"pad_agents={pad_agents} is fewer than the {self._real} agents of {self.env_id}"
+            )
+        count = int(pad_agents)
+        self.masks = True
+        self.active = np.array([1.0] * self._real + [0.0] * (count - self._real), np.float32)
+        self.available = np.ones((count, 1), np.float32)  # continuous: no choices to mask
+        return [f"pad_{row}" for row in range(self._real, count)]
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         if seed is None and self._seed is not None:
@@ -102,13 +145,14 @@ class MaMuJoCoTeam(ArrayTeam):
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         actions = np.clip(actions, -1.0, 1.0) * self._action_mask  # faults zero their entries
         per_agent = {
-            name: actions[row, : self.action_widths[row]] for row, name in enumerate(self.agents)
+            name: actions[row, : self.action_widths[row]]
+            for row, name in enumerate(self.possible_agents)  # padding's actions are dropped
         }
         data = self._env.single_agent_env.unwrapped.data
         time_before = data.time
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
-        first = self.agents[0]
+        first = self.possible_agents[0]
         packed, reward = self._pack(obs), float(rewards[first])
         if diverged(time_before, data.time, reward):
             packed, reward = end_diverged(self.env_id, self._steps, packed)
@@ -197,10 +241,10 @@ class MaMuJoCoTeam(ArrayTeam):
 
     def _pack(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         packed = np.zeros((self.n_agents, self.obs_dim), dtype=np.float32)
-        for row, name in enumerate(self.agents):
+        for row, name in enumerate(self.possible_agents):  # padding's rows stay zero
             packed[row, : self._raw_obs_dims[row]] = obs[name]
             if self.agent_id:
                 packed[row, self._raw_obs_width + row] = 1.0
         if self._positions.shape[1]:
-            packed[:, -self._positions.shape[1] :] = self._positions
+            packed[: self._real, -self._positions.shape[1] :] = self._positions
         return packed
