@@ -148,7 +148,7 @@ def test_count_independent_positions_keep_one_observation_size(family):
 
 @pytest.mark.parametrize(
     ("family", "counts", "size"),
-    [("ManySegmentSwimmer", (3, 4, 8), 6), ("ManySegmentAnt", (2, 4), 115)],
+    [("ManySegmentSwimmer", (2, 3, 4, 8), 6), ("ManySegmentAnt", (2, 4), 115)],
 )
 def test_mamujoco_families_have_one_observation_size_for_every_count(family, counts, size):
     teams = [envs.make_team(f"mamujoco:{family}-{k}x2") for k in counts]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import io
 import re
 import tempfile
@@ -54,6 +55,19 @@ def _asset_lock(needed: bool):
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@functools.cache
+def _family_width(scenario: str, agent_obsk: int) -> int:
+    """The widest agent observation of a family: that of K = 3, whose middle agent has a
+    neighbour on each side, as every inner agent of a longer chain has."""
+    from gymnasium_robotics import mamujoco_v1
+
+    with _asset_lock(True):
+        env = mamujoco_v1.parallel_env(scenario, "3x2", agent_obsk=agent_obsk)
+    width = max(env.observation_space(a).shape[0] for a in env.possible_agents)
+    env.close()
+    return width
 
 
 class MaMuJoCoTeam(ArrayTeam):
@@ -107,7 +121,9 @@ class MaMuJoCoTeam(ArrayTeam):
         self.action_size = self.action_width
         self._raw_obs_dims = [self._env.observation_space(a).shape[0] for a in self.possible_agents]
         self._raw_obs_width = max(self._raw_obs_dims)
-        self.obs_dim = max(self._raw_obs_dims) + (self.n_agents if self.agent_id else 0)
+        if self.variable_count:  # K = 2 has no agent with two neighbours; pad to the family's
+            self._raw_obs_width = max(self._raw_obs_width, _family_width(scenario, agent_obsk))
+        self.obs_dim = self._raw_obs_width + (self.n_agents if self.agent_id else 0)
         self._positions = position_features(position, self._real)  # [agents, 0..2]
         self.obs_dim += self._positions.shape[1]
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
