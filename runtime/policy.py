@@ -41,7 +41,6 @@ from mat_runtime.errors import BundleError, InputError
 # `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
 ONNXRUNTIME_FOR_OPSET = {24: "1.24.1"}
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
-_CONSTANT_CACHE = 32  # read-only filled buffers (zero noise, all-available masks) kept
 _BOUND_CACHE = 32  # bound [B, n] shapes kept per thread
 # ONNX Runtime's fused Add + LayerNorm kernel (SkipLayerNormalization) is faster at B = 1
 # but slower with many rows (BENCHMARKS.md), so batches of BATCH_ROWS or more go to
@@ -111,7 +110,6 @@ class Policy:
         self.discrete = self.action_type == "discrete"
         head = ["logits"] if self.discrete else ["mean", "std"]
         self._outputs = ["actions", *head, "values"]
-        self._constants: dict[tuple[int, int, float], np.ndarray] = {}
         self._local = threading.local()  # each thread's bound buffers (`_Bound`)
 
     @classmethod
@@ -168,6 +166,8 @@ class Policy:
         seed: int | np.random.Generator | None = None,
         return_values: bool = False,
         clip: bool = True,
+        out: np.ndarray | None = None,
+        out_extra: dict[str, np.ndarray] | None = None,
     ):
         """Actions for every agent: `[.., n, action_size]` floats (continuous, clipped to the
         action bounds) or `[.., n]` int64 choices (discrete); `..` is B when obs has a batch.
@@ -177,31 +177,47 @@ class Policy:
 
         With `return_values=True` also returns a dict: `values` `[.., n]` (in return units)
         and the distribution, `mean`/`std` or masked `logits` `[.., n, action_size]`.
+
+        `out` (and, with `return_values`, `out_extra`: a dict of arrays for some or all of
+        those names) are caller-owned arrays of exactly those shapes to write into; `act`
+        then returns them. A control loop that passes the same float32 obs buffer and
+        `out` every tick allocates nothing per call (continuous policies; discrete ones
+        without `available`): the graph's inputs and outputs are bound once per shape.
         """
         x = self._check_obs(obs)
-        batch, n, _ = x.shape
-        single = np.ndim(obs) == 2
-        feed = {"obs": x, "noise": self._noise(batch, n, deterministic, seed)}
+        single = x.ndim == 2
+        batch, n = (1, x.shape[0]) if single else x.shape[:2]
+        bound = self._bound(batch, n)
+        views = bound.single if single else bound.batched
+        if x.dtype == np.float32:
+            np.copyto(views["obs"], x)
+        else:
+            with np.errstate(over="ignore"):  # out-of-range values become inf: refused below
+                np.copyto(views["obs"], x, casting="unsafe")
+        self._fill_noise(views["noise"], deterministic, seed)
         if self.discrete:
-            feed["available"] = self._check_available(available, batch, n)
+            self._fill_available(views["available"], available)
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
-        outputs = self._bound(batch, n).run(feed)  # this thread's buffers: copy what we return
-        self._check_finite(x, outputs.get("obs_check"), single)
+        bound.run()
+        self._check_finite(bound.buffers["obs"], bound.buffers.get("obs_check"), single)
         if self.discrete:
-            actions = outputs["actions"][..., 0].astype(np.int64)
-        elif not clip:
-            actions = outputs["actions"].copy()
-        elif "clipped_actions" in outputs:
-            actions = outputs["clipped_actions"].copy()
-        else:  # a bundle exported before the graph clipped
-            actions = np.clip(outputs["actions"], self._low, self._high)
+            actions = views["choices"]
+        elif not clip or "clipped_actions" not in views:
+            actions = views["actions"]
+        else:
+            actions = views["clipped_actions"]
+        clip_here = clip and not self.discrete and "clipped_actions" not in views
+        # a bundle exported before the graph clipped: clip here
+        actions = _deliver(actions, out, "out", np.int64 if self.discrete else np.float32)
+        if clip_here:
+            np.clip(actions, self._low, self._high, out=actions)
         if not return_values:
-            return actions[0] if single else actions
-        extra = {name: outputs[name].copy() for name in self._outputs[1:]}
-        extra["values"] = extra["values"][..., 0]
-        if single:
-            return actions[0], {name: value[0] for name, value in extra.items()}
+            return actions
+        extra = {}
+        for name in self._outputs[1:]:
+            given = None if out_extra is None else out_extra.get(name)
+            extra[name] = _deliver(views[name], given, f"out_extra[{name!r}]", np.float32)
         return actions, extra
 
     # ---- input checks: each names the problem and what to do
@@ -232,11 +248,7 @@ class Policy:
                 else f"{self.min_agents}..{self.max_agents or 'any'}"
             )
             raise InputError(f"got {n} agents; this {self.algo} bundle serves {allowed}")
-        batched = array if array.ndim == 3 else array[None]
-        if batched.dtype == np.float32:
-            return np.ascontiguousarray(batched)
-        with np.errstate(over="ignore"):  # out-of-range values become inf: `_check_finite`
-            return np.ascontiguousarray(batched, dtype=np.float32)
+        return array
 
     @staticmethod
     def _check_finite(x: np.ndarray, obs_check, single: bool) -> None:
@@ -251,25 +263,26 @@ class Policy:
             where = f"agent {agent}" + ("" if single else f" of batch row {row}")
             raise InputError(f"obs of {where} contains NaN or inf (as float32); check the sensor")
 
-    def _check_available(self, available, batch: int, n: int) -> np.ndarray:
-        shape = (batch, n, self.action_size)
+    def _fill_available(self, buffer: np.ndarray, available) -> None:
+        """Write `available` (None: every choice) as 1/0 into the graph's input `buffer`."""
         if available is None:
-            return self._filled(batch, n, 1.0)
+            buffer.fill(1.0)
+            return
         mask = np.asarray(available)
-        if mask.shape not in (shape, shape[1:]) or (mask.shape == shape[1:] and batch != 1):
-            raise InputError(
-                f"available must have shape {shape[1:] if batch == 1 else shape}, got {mask.shape}"
-            )
-        mask = (mask != 0).reshape(shape)
-        blocked = ~mask.any(axis=-1)
+        one_row = buffer.ndim == 3 and buffer.shape[0] == 1 and mask.shape == buffer.shape[1:]
+        if mask.shape != buffer.shape and not one_row:
+            raise InputError(f"available must have shape {buffer.shape}, got {mask.shape}")
+        np.not_equal(mask, 0, out=buffer)
+        blocked = ~buffer.any(axis=-1)
         if blocked.any():
-            agent = int(np.argwhere(blocked)[0][1])
+            agent = int(np.argwhere(blocked)[0][-1])
             raise InputError(f"agent {agent} has no available action; at least one must be allowed")
-        return mask.astype(np.float32)
 
     def _bound(self, batch: int, n: int) -> _Bound:
         """This thread's buffers bound to the graph for [batch, n], made once per shape."""
-        cache = self._local.__dict__.setdefault("bound", {})
+        cache = getattr(self._local, "bound", None)
+        if cache is None:
+            cache = self._local.bound = {}
         bound = cache.get((batch, n))
         if bound is None:
             if len(cache) >= _BOUND_CACHE:
@@ -290,28 +303,18 @@ class Policy:
                     shapes[name] = one
                 else:
                     shapes[name] = per_agent
-            bound = cache[(batch, n)] = _Bound(session, shapes)
+            bound = cache[(batch, n)] = _Bound(session, shapes, self.discrete)
         return bound
 
-    def _filled(self, batch: int, n: int, value: float) -> np.ndarray:
-        """A read-only [batch, n, action_size] buffer of `value`, made once per shape."""
-        key = (batch, n, value)
-        buffer = self._constants.get(key)
-        if buffer is None:
-            if len(self._constants) >= _CONSTANT_CACHE:
-                self._constants.clear()
-            buffer = np.full((batch, n, self.action_size), value, np.float32)
-            buffer.flags.writeable = False
-            self._constants[key] = buffer
-        return buffer
-
-    def _noise(self, batch: int, n: int, deterministic: bool, seed) -> np.ndarray:
+    def _fill_noise(self, buffer: np.ndarray, deterministic: bool, seed) -> None:
+        """Write the sampling noise into the graph's input `buffer` (zero: deterministic)."""
         if deterministic:
             if seed is not None:
                 raise InputError(
                     "seed given for a deterministic call; pass deterministic=False to sample"
                 )
-            return self._filled(batch, n, 0.0)
+            buffer.fill(0.0)
+            return
         if seed is None:
             raise InputError(
                 "sampling needs seed=: an int, or a numpy.random.Generator kept between calls"
@@ -326,19 +329,45 @@ class Policy:
             raise InputError(
                 f"seed must be an int or numpy.random.Generator, got {type(seed).__name__}"
             )
-        shape = (batch, n, self.action_size)
         if not self.discrete:
-            return rng.standard_normal(shape, dtype=np.float32)
-        uniform = rng.random(shape, dtype=np.float32)
-        return -np.log(-np.log(np.maximum(uniform, np.finfo(np.float32).tiny)))  # Gumbel
+            rng.standard_normal(dtype=np.float32, out=buffer)
+            return
+        rng.random(dtype=np.float32, out=buffer)  # uniform -> Gumbel, in place
+        np.maximum(buffer, np.finfo(np.float32).tiny, out=buffer)
+        np.log(buffer, out=buffer)
+        np.negative(buffer, out=buffer)
+        np.log(buffer, out=buffer)
+        np.negative(buffer, out=buffer)
+
+
+def _deliver(source: np.ndarray, out: np.ndarray | None, name: str, dtype) -> np.ndarray:
+    """A copy of `source` (a bound buffer's view), or `source` written into the caller's `out`."""
+    if out is None:
+        return source.astype(dtype)  # always a copy
+    if not isinstance(out, np.ndarray) or out.shape != source.shape:
+        shape = getattr(out, "shape", type(out).__name__)
+        raise InputError(f"{name} must be a numpy array of shape {source.shape}, got {shape}")
+    if not np.can_cast(dtype, out.dtype, "same_kind") or not out.flags.writeable:
+        raise InputError(
+            f"{name} must be a writeable {np.dtype(dtype)} array (or wider), got {out.dtype}"
+            + ("" if out.flags.writeable else ", read-only")
+        )
+    np.copyto(out, source, casting="unsafe")
+    return out
 
 
 class _Bound:
     """A session's inputs and outputs bound once to fixed float32 buffers of one shape: a call
     copies its inputs in and the caller copies out what it keeps, so ONNX Runtime neither
-    converts nor allocates them per call. One per thread: buffers are state."""
+    converts nor allocates them per call. One per thread: buffers are state.
 
-    def __init__(self, session: ort.InferenceSession, shapes: dict[str, tuple[int, ...]]):
+    `batched` and `single` hold views of each buffer in the shapes `act` takes and returns,
+    for a `[B, n, ..]` batch and for one `[n, ..]` step (B = 1); `choices` (discrete) and
+    `values` drop the trailing 1."""
+
+    def __init__(
+        self, session: ort.InferenceSession, shapes: dict[str, tuple[int, ...]], discrete: bool
+    ):
         self.session, self.binding = session, session.io_binding()
         self.buffers = {name: np.zeros(shape, np.float32) for name, shape in shapes.items()}
         inputs = {i.name for i in session.get_inputs()}
@@ -348,13 +377,16 @@ class _Bound:
             else:
                 address = buffer.ctypes.data
                 self.binding.bind_output(name, "cpu", 0, np.float32, buffer.shape, address)
+        self.batched = {name: b for name, b in self.buffers.items() if b.ndim == 3}
+        self.batched["values"] = self.buffers["values"][..., 0]
+        if discrete:
+            self.batched["choices"] = self.buffers["actions"][..., 0]
+        self.single = {name: view[0] for name, view in self.batched.items()}
 
-    def run(self, feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The output buffers, valid until this thread's next call with the same shape."""
-        for name, value in feed.items():
-            np.copyto(self.buffers[name], value)
+    def run(self) -> None:
+        """Run the graph on the input buffers; the outputs stay valid until this thread's next
+        call with the same shape."""
         self.session.run_with_iobinding(self.binding)
-        return self.buffers
 
 
 def _version(text: str) -> tuple[int, ...]:
