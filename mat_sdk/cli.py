@@ -138,7 +138,7 @@ def main() -> None:
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero
       mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
-      mat bench envs                    env stepping speed (also: runtime, train, scaling)
+      mat bench envs                    env stepping speed (also: runtime, jitter, train, scaling)
       mat bench seeds                   the learning tests' recipes on many seeds
     """
     # module:function env ids import from the current directory, as `python -m` would
@@ -625,6 +625,27 @@ def bench_runtime(seconds: float, agents: str, no_scaling: bool) -> None:
     from mat_sdk.bench.runtime import main as run
 
     run(agent_counts=parse_counts(agents, "--agents"), seconds=seconds, scale=not no_scaling)
+
+
+@bench.command("jitter")
+@click.option("--seconds", default=10.0, show_default=True, help="Measured time per row.")
+@click.option("--cpu", type=int, help="Pin the loop to this core.")
+@click.option("--fifo", type=int, metavar="PRIORITY", help="SCHED_FIFO at this priority (1-99).")
+@click.option("--spin", is_flag=True, help="Busy-wait between ticks instead of sleeping.")
+@user_errors
+def bench_jitter(seconds: float, cpu: int | None, fifo: int | None, spin: bool) -> None:
+    """The control loop's p50 / p99 / p99.9 / max and late ticks, idle and under a CPU load.
+
+    n = 6 at 1 kHz and n = 64 at 100 Hz (simulated robots, paper-size untrained policies),
+    then again while one busy process per core competes (started and stopped here).
+
+    \b
+    Example:
+      mat bench jitter --seconds 60 --cpu 1 --fifo 80
+    """
+    from mat_sdk.bench.jitter import main as run
+
+    run(seconds=seconds, cpu=cpu, fifo=fifo, spin=spin)
 
 
 @bench.command("scaling")

@@ -4,10 +4,12 @@
     policy = Policy.load("cheetah_onnx")
     actions = policy.act(obs)  # obs [n, obs_dim] -> actions [n, action_size]
 
-See `mat_runtime.policy` for the input rules and thread-safety.
+See `mat_runtime.policy` for the input rules and thread-safety, and `mat_runtime.loop` for a
+fixed-rate control loop with its tick statistics.
 """
 
+from mat_runtime import loop
 from mat_runtime.errors import BundleError, InputError, MatRuntimeError
 from mat_runtime.policy import Policy
 
-__all__ = ["BundleError", "InputError", "MatRuntimeError", "Policy"]
+__all__ = ["BundleError", "InputError", "MatRuntimeError", "Policy", "loop"]

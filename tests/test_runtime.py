@@ -1,10 +1,12 @@
 """mat_runtime: parity with the torch policy, sampling, loud errors, threads, no torch."""
 
 import json
+import os
 import re
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,7 @@ from helpers import make_checkpoint
 
 import mat_runtime
 from mat_export import export
-from mat_runtime import BundleError, InputError, Policy
+from mat_runtime import BundleError, InputError, Policy, loop
 from mat_sdk.evaluation import LoadedPolicy
 
 COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
@@ -423,7 +425,52 @@ def _run_example(name: str, *args: str) -> str:
 def test_controller_example_runs_without_torch(bundles, name):
     """examples/controller.py (which blocks torch itself) on a robot and on the game."""
     out = _run_example("controller.py", str(bundles[name][1]), "--rate", "50", "--seconds", "0.4")
-    assert "20 steps in" in out and "act: p50" in out and "episode returns:" in out, out
+    assert "20 ticks in" in out and "p99.9" in out and "episode returns:" in out, out
+
+
+def test_the_loop_keeps_its_rate_measures_every_tick_and_counts_overruns():
+    calls = {"act": 0, "step": 0}
+    ticks = loop.run(
+        lambda: calls.__setitem__("act", calls["act"] + 1),
+        lambda: calls.__setitem__("step", calls["step"] + 1),
+        rate=200,
+        seconds=0.25,
+        warmup=0.05,
+    )
+    assert calls == {"act": 60, "step": 60} and len(ticks.act_seconds) == 50
+    assert ticks.late < 5 and 0.24 < ticks.elapsed < 0.5  # a late tick is a 5 ms stall
+    assert set(ticks.percentiles()) == {"p50", "p99", "p99.9", "max"}
+    assert "50 ticks in" in ticks.summary() and f"late ticks: {ticks.late};" in ticks.summary()
+    slow = loop.run(lambda: time.sleep(0.006), lambda: None, rate=200, seconds=0.1, warmup=0)
+    assert slow.late == 20 and slow.percentiles()["p50"] > 5000  # every 5 ms tick overran
+    with pytest.raises(ValueError, match="rate and seconds must be > 0"):
+        loop.run(lambda: None, lambda: None, rate=0)
+
+
+def test_realtime_requests_say_what_happened():
+    allowed = sorted(os.sched_getaffinity(0))
+    try:
+        assert loop.realtime(cpu=allowed[0]) == [f"pinned to CPU {allowed[0]}"]
+        (note,) = loop.realtime(cpu=10_000)
+        assert note.startswith("not pinned to CPU 10000") and "allowed CPUs" in note
+    finally:
+        os.sched_setaffinity(0, allowed)
+    # SCHED_FIFO itself is left to a subprocess: granted, it would outlive this test
+    script = "from mat_runtime import loop; print(loop.realtime(fifo=1)[0])"
+    note = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout
+    assert note.startswith(("SCHED_FIFO at priority 1", "SCHED_FIFO not permitted: run as root"))
+
+
+@pytest.mark.slow
+def test_bench_jitter_prints_idle_and_loaded_tables():
+    out = subprocess.run(
+        ["mat", "bench", "jitter", "--seconds", "0.3"], capture_output=True, text=True, check=True
+    ).stdout
+    assert "### idle machine" in out and "busy processes competing" in out, out
+    assert out.count("| cheetah-6x1 (n = 6) | 1000 Hz |") == 2, out
+    assert out.count("| swimmer-65 (n = 64) | 100 Hz |") == 2, out
 
 
 def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):

@@ -56,8 +56,10 @@ def latencies(
     return {name: np.asarray(times) for name, times in samples.items()}
 
 
-def _bundle(directory: Path, **model) -> tuple[Path, object]:
-    with Trainer("cheetah-6x1", "mat", num_envs=1, rollout_length=1, **model) as trainer:
+def untrained_bundle(directory: Path, env_id: str = "cheetah-6x1", **model) -> tuple[Path, object]:
+    """A freshly initialised policy for `env_id`, exported to `directory`/bundle, and its
+    torch module: the speed of a step does not depend on what the weights learned."""
+    with Trainer(env_id, "mat", num_envs=1, rollout_length=1, **model) as trainer:
         path = trainer.save(directory / "model.pt")
         policy = trainer.policy.eval()
     export(path, directory / "bundle", agent_counts=(1, 2))
@@ -191,7 +193,7 @@ def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
     rows, scaling = [], []
     for label, model in SIZES.items():
         with tempfile.TemporaryDirectory() as tmp:
-            bundle, policy = _bundle(Path(tmp), **model)
+            bundle, policy = untrained_bundle(Path(tmp), **model)
             cases = [(1, n) for n in agent_counts] + [(40, 6)]
             for batch, n in cases:
                 obs = np.random.default_rng(0).standard_normal((batch, n, policy.cfg.obs_dim))
@@ -229,7 +231,7 @@ def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
                     )
     print_table(rows, f"One control step, one thread — {machine()}")
     with tempfile.TemporaryDirectory() as tmp:
-        bundle, policy = _bundle(Path(tmp), **SIZES["1 block, 1 head"])
+        bundle, policy = untrained_bundle(Path(tmp), **SIZES["1 block, 1 head"])
         table = spinning(bundle, policy.cfg.obs_dim, seconds)
     print_table(table, "Spinning (Policy.load(spin=...)), 1 block, n = 6")
     if scaling:

@@ -1,0 +1,71 @@
+"""The control loop's worst ticks, idle and under load (`mat bench jitter`).
+
+Runs `mat_runtime.loop` (what `examples/controller.py` runs) on simulated robots at the
+paper's model size, one ORT thread, `act(obs, out=...)`: n = 6 (cheetah-6x1) at 1 kHz and
+n = 64 (swimmer-65) at 100 Hz, each for `seconds` with the machine otherwise idle, and again
+while one busy process per core (started and stopped here) competes for every CPU.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from mat_runtime import Policy, loop
+from mat_sdk.bench import machine, print_table
+from mat_sdk.bench.runtime import untrained_bundle
+from mat_sdk.envs import make_team
+
+ROBOTS = (("cheetah-6x1", 1000.0), ("swimmer-65", 100.0))  # (env, rate): n = 6, n = 64
+
+
+def _burn() -> None:
+    while True:
+        pass
+
+
+def _measure(bundle: Path, env_id: str, rate: float, seconds: float, spin: bool) -> dict:
+    policy, team = Policy.load(bundle, threads=1), make_team(env_id)
+    obs = np.zeros((team.n_agents, policy.obs_dim), np.float32)
+    obs[:] = team.reset(seed=0)
+    actions = np.zeros((team.n_agents, policy.action_size), np.float32)
+
+    def step() -> None:
+        observed, _, terminated, truncated = team.step(actions)
+        obs[:] = team.reset() if terminated or truncated else observed
+
+    ticks = loop.run(lambda: policy.act(obs, out=actions), step, rate, seconds, spin=spin)
+    p = ticks.percentiles()
+    return {
+        "robot": f"{env_id} (n = {team.n_agents})",
+        "rate": f"{rate:g} Hz",
+        **{f"act {name} µs": f"{value:.0f}" for name, value in p.items()},
+        "late ticks": f"{ticks.late} / {len(ticks.act_seconds)}",
+        "tick start p99 µs": f"{np.percentile(ticks.wake_seconds * 1e6, 99):.0f}",
+    }
+
+
+def main(
+    seconds: float = 10.0, cpu: int | None = None, fifo: int | None = None, spin: bool = False
+) -> None:
+    notes = loop.realtime(cpu, fifo)
+    print(f"machine: {machine()}; {os.cpu_count()} CPUs; " + "; ".join(notes or ["no pinning"]))
+    with tempfile.TemporaryDirectory() as tmp:
+        bundles = {env_id: untrained_bundle(Path(tmp) / env_id, env_id)[0] for env_id, _ in ROBOTS}
+        idle = [_measure(bundles[e], e, rate, seconds, spin) for e, rate in ROBOTS]
+        print_table(idle, f"idle machine, {seconds:g} s per row")
+        context = multiprocessing.get_context("spawn")
+        burners = [context.Process(target=_burn, daemon=True) for _ in range(os.cpu_count() or 1)]
+        for burner in burners:
+            burner.start()
+        try:
+            loaded = [_measure(bundles[e], e, rate, seconds, spin) for e, rate in ROBOTS]
+        finally:
+            for burner in burners:
+                burner.terminate()
+                burner.join()
+        print_table(loaded, f"{len(burners)} busy processes competing, {seconds:g} s per row")
