@@ -7,10 +7,11 @@
 
 The "robot" here is the dm_control simulation from `mat_sdk.envs` (MuJoCo, no torch); on
 hardware, replace `team.observe()` / `team.step()` with your sensor read and actuator write.
-Each tick acts into preallocated arrays (`act(obs, out=...)`: no allocation per call), after
-a warm-up; `--cpu` pins the process to a core and `--fifo` asks for SCHED_FIFO (a note says
-so where the OS refuses). torch is blocked at start-up, so this script fails loudly if
-anything tries to import it.
+Each tick builds the agents' observations from the raw joint state with the bundle's wiring
+(`Policy.describe()` prints it) and acts into preallocated arrays (`act(obs, out=...)`: no
+allocation per call), after a warm-up. `--cpu` pins the process to a core and `--fifo` asks
+for SCHED_FIFO (a note says so where the OS refuses). torch is blocked at start-up, so this
+script fails loudly if anything tries to import it.
 """
 
 from __future__ import annotations
@@ -68,13 +69,28 @@ def main() -> None:
     def act() -> None:
         policy.act(obs, out=actions)
 
+    # as on hardware: each agent's observation gathered from the raw joint state by the
+    # bundle's wiring (its layout), not taken from the simulator's own observation
+    wiring = policy.wiring if policy.wiring and policy.wiring.has_observation else None
+    if wiring is not None and hasattr(team, "physics"):
+        data = team.physics.data
+        names = ", ".join(feature["name"] for feature in wiring.features)
+        print(f"observations built from the raw joint state by the bundle's wiring: {names}")
+
+        def sense(_observed) -> None:
+            obs[:] = wiring.observe(data.qpos, data.qvel, team.task_features())
+    else:
+
+        def sense(observed) -> None:
+            obs[:] = observed
+
     def step() -> None:
         observed, reward, terminated, truncated = team.step(command)
         episode["return"] += reward
         if terminated or truncated:
             episode["finished"].append(episode["return"])
             observed, episode["return"] = team.reset(), 0.0
-        obs[:] = observed
+        sense(observed)
 
     ticks = loop.run(act, step, args.rate, args.seconds, args.warmup, args.spin)
     print(f"{policy} on {team.env_id} with agents {team.agents}")

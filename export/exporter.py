@@ -43,6 +43,10 @@ OPSET = 20
 PARITY_LIMIT = 1e-4
 AGENT_COUNTS = (1, 2, 6, 17, 64)
 STANDARD_DOMAINS = ("", "ai.onnx")
+NORMALIZER_PLACE = (
+    "inside the graphs: they take raw observations, normalise them with the training "
+    "statistics and clip them"
+)
 
 
 class ExportError(ValueError):
@@ -64,11 +68,13 @@ def export(
     staging = _staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
         policy, normalizer, value_scale = _rebuild(payload)
-        _check_env(payload, policy.cfg)
+        team = _check_env(payload, policy.cfg)
         cfg = policy.cfg
         counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
         graphs = _export_graphs(policy, normalizer, value_scale, staging)
         manifest = _manifest(payload, cfg, graphs, checkpoint_path)
+        if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
+            manifest["wiring"] = {**team.wiring(), "normalizer": NORMALIZER_PLACE}
         folded = (
             normalizer.mean.numpy(),
             normalizer.scale.numpy(),
@@ -179,8 +185,9 @@ def _replace(staging: Path, out_dir: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _check_env(payload: dict, cfg: ModelConfig) -> None:
-    """The bundle names the robot it drives: that env must exist and fit the model."""
+def _check_env(payload: dict, cfg: ModelConfig):
+    """The bundle names the robot it drives: that env must exist and fit the model. Returns
+    the team, for its wiring."""
     from mat_sdk import envs
 
     env_id, train = payload["config"]["env"]["id"], payload["config"]["train"]
@@ -197,6 +204,7 @@ def _check_env(payload: dict, cfg: ModelConfig) -> None:
             f"{team.action_size}, but the checkpoint's model takes {cfg.obs_dim} and "
             f"{cfg.action_size}; no bundle written"
         )
+    return team
 
 
 def _rebuild(payload: dict) -> tuple[Any, ObsNormalizer, ValueScale]:

@@ -36,6 +36,7 @@ import onnxruntime as ort
 
 from mat_runtime.bundle import read_bundle
 from mat_runtime.errors import BundleError, InputError
+from mat_runtime.wiring import Wiring, check_wiring
 
 # The oldest onnxruntime verified to run the graphs of each opset the exporter writes:
 # `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
@@ -111,6 +112,11 @@ class Policy:
         head = ["logits"] if self.discrete else ["mean", "std"]
         self._outputs = ["actions", *head, "values"]
         self._local = threading.local()  # each thread's bound buffers (`_Bound`)
+        wiring = manifest.get("wiring")
+        if wiring is not None:
+            check_wiring(wiring, self.obs_dim, self.action_size, str(path / "manifest.json"))
+        # how the arrays map onto the robot (`mat_runtime.wiring`); None for older bundles
+        self.wiring: Wiring | None = None if wiring is None else Wiring(wiring)
 
     @classmethod
     def load(
@@ -156,6 +162,21 @@ class Policy:
             f"obs_dim={self.obs_dim}, {self.action_type} actions x{self.action_size}, "
             f"agents {agents})"
         )
+
+    def describe(self) -> str:
+        """What an integrator needs: the policy, and how to wire it to the robot."""
+        trained = self.manifest["agents"].get("trained_counts") or [
+            self.manifest["agents"].get("trained")
+        ]
+        lines = [repr(self), f"trained on agent counts {trained}"]
+        if self.wiring is None:
+            lines.append(
+                "no wiring in this bundle (exported before it was recorded, or an env "
+                "without actuators); re-export it with `mat export` to add it"
+            )
+        else:
+            lines.append(self.wiring.describe())
+        return "\n".join(lines)
 
     def act(
         self,

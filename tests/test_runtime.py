@@ -17,6 +17,8 @@ from helpers import make_checkpoint
 import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
+from mat_sdk.bench.seeds import with_examples
+from mat_sdk.envs import make_team
 from mat_sdk.evaluation import LoadedPolicy
 
 COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
@@ -623,6 +625,20 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
         ),
         "relabelled": (relabel, r"decode_n3\.onnx: .*has shape \['batch', 2"),
         "truncated": (truncate, "cannot load this graph"),
+        "timestep": (
+            set_field("wiring", "control_timestep", -1), r"wiring\.control_timestep must be > 0"
+        ),
+        "columns": (
+            set_field("wiring", "agents", 0, "action", []), r"wiring\.agents\[0\]\.action must list"
+        ),
+        "index": (
+            set_field("wiring", "observation", "index", 0, 0, 10**6),
+            r"wiring\.observation\.index must hold integers in 0\.\.",
+        ),
+        "source": (
+            set_field("wiring", "observation", "source", "qvel", [1, 2]),
+            r"wiring\.observation\.source\.qvel must be \[",
+        ),
     }  # fmt: skip
     for case, (edit, message) in cases.items():
         target = _damaged(bundles["mat"][1], tmp_path / case, edit)
@@ -632,6 +648,53 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
     (deep / "manifest.json").write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(BundleError, match="manifest.json"):
         Policy.load(deep)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "options"),
+    [
+        ("cheetah-6x1", {"faults": {"agent_1": "remove", "ffoot": "zero"}}),
+        ("swimmer-5", {"env_options": {"position": "ends"}}),
+        ("my_robots:arm", {}),  # position servos: ctrl ranges that are not [-1, 1]
+    ],
+)
+def test_the_bundles_wiring_rebuilds_observations_and_commands_from_raw_state(
+    tmp_path, env_id, options
+):
+    """A controller with the bundle alone: observations gathered from qpos / qvel / task
+    features equal the env's own, and the commands equal the ctrl the env writes."""
+    with_examples()
+    ckpt = make_checkpoint(tmp_path / "c.pt", env_id, "mat", **options)
+    export(ckpt, tmp_path / "bundle", agent_counts=(1,))
+    policy = Policy.load(tmp_path / "bundle")
+    team = make_team(env_id, options.get("faults"), **options.get("env_options", {}))
+    wiring, data = policy.wiring, team.physics.data
+    assert [a["name"] for a in wiring.agents] == team.agents
+    assert wiring.control_timestep == team.control_timestep
+    rng = np.random.default_rng(0)
+    obs = team.reset(seed=0)
+    for _ in range(30):
+        np.testing.assert_array_equal(
+            wiring.observe(data.qpos, data.qvel, team.task_features()), obs
+        )
+        actions = rng.uniform(-1.5, 1.5, (team.n_agents, team.action_width))
+        obs, *_ = team.step(actions)
+        index, values = wiring.commands(actions)
+        np.testing.assert_allclose(data.ctrl[index], values, rtol=1e-12, atol=1e-12)
+    described = policy.describe()
+    assert "control timestep" in described and "observation (every agent): joints.qpos" in described
+    if "faults" in options:  # a removed agent is not wired; a zeroed actuator drives nothing
+        assert "agent_1" not in described and "ffoot, " not in described
+        assert [c["ctrl"] for c in wiring.agents[-1]["action"]] == [None]
+
+
+def test_a_bundle_without_wiring_still_loads_and_says_so(bundles, tmp_path):
+    older = _damaged(bundles["mat"][1], tmp_path / "older", lambda m, d: m.pop("wiring"))
+    policy = Policy.load(older)
+    assert policy.wiring is None and "no wiring in this bundle" in policy.describe()
+    assert policy.act(_obs(policy, 2)).shape == (2, policy.action_size)
+    game = Policy.load(bundles["mat-discrete"][1])  # a game: nothing to wire
+    assert game.wiring is None
 
 
 def test_an_onnxruntime_too_old_for_the_opset_is_named(bundles, monkeypatch):

@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 
 from mat_sdk.envs.base import (
+    NO_ACTUATOR,
     ArrayTeam,
     checked_episode_limit,
     diverged,
@@ -205,6 +206,41 @@ class MaMuJoCoTeam(ArrayTeam):
                     f"{self.env_id}; agents: {', '.join(self.agents)}; joints: {', '.join(joints)}"
                 )
         return mask
+
+    def wiring(self) -> dict:
+        """How the policy's arrays map onto the robot (see `RobotTeam.wiring`): per agent the
+        joints it drives, each action column as the MuJoCo ctrl it sets (Gymnasium writes the
+        action to ctrl as is), and the control timestep. Gymnasium-Robotics builds the
+        observations itself, so their layout is not described here."""
+        model = self._env.single_agent_env.unwrapped.model
+        agents = []
+        for row, partition in enumerate(self._env.agent_action_partitions):
+            ids = [int(node.act_ids) for node in partition]
+            actuators = [model.actuator(i).name or f"#{i}" for i in ids]  # Ant's have no names
+            action = [
+                {"actuator": name, "ctrl": i, "scale": 1.0, "offset": 0.0}
+                for name, i in zip(actuators, ids, strict=True)
+            ]
+            action += [NO_ACTUATOR] * (self.action_width - len(actuators))
+            joints = [node.label for node in partition]
+            agents.append(
+                {
+                    "name": self.agents[row],
+                    "actuators": actuators,
+                    "joints": joints,
+                    "action": action,
+                }
+            )
+        for name in self.agents[self._real :]:  # padding drives nothing
+            agents.append(
+                {"name": name, "actuators": [], "joints": [],
+                 "action": [NO_ACTUATOR] * self.action_width}
+            )  # fmt: skip
+        return {
+            "control_timestep": self.control_timestep,
+            "physics_timestep": float(model.opt.timestep),
+            "agents": agents,
+        }
 
     def get_state(self) -> dict:
 

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from mat_sdk.envs.base import (
+    NO_ACTUATOR,
     ArrayTeam,
     checked_episode_limit,
     diverged,
@@ -164,22 +165,27 @@ class RobotTeam(ArrayTeam):
         def qvel(joints):
             return [nq + int(i) for j in joints for i in joint_dof_indices(model, j)]
 
-        parts = [
-            [getter(getattr(member, field)) for member in self.team]
+        parts = {
+            f"{field}.{kind}": [getter(getattr(member, field)) for member in self.team]
             for field in ("joints", "upstream", "downstream")
-            for getter in (qpos, qvel)
-        ]
+            for kind, getter in (("qpos", qpos), ("qvel", qvel))
+        }
+        widths = {name: max(len(entries) for entries in block) for name, block in parts.items()}
         root_qpos, root_qvel = root_feature_indices(model)
-        shared = list(range(nq + nv, nq + nv + n_extra))
+        shared = {"task": list(range(nq + nv, nq + nv + n_extra))}
         if self.spec.root_features:
-            shared = [*root_qpos.tolist(), *(nq + root_qvel).tolist(), *shared]
+            shared = {"root.qpos": root_qpos.tolist(), "root.qvel": (nq + root_qvel).tolist()}
+            shared["task"] = list(range(nq + nv, nq + nv + n_extra))
+        widths |= {name: len(entries) for name, entries in shared.items()}
+        widths |= {"id": len(self.team) if self.agent_id else 0}
+        widths |= {"position": self._positions.shape[1]}
         rows = []
         for agent in self.active:
             row = []
-            for block in parts:
-                width = max(len(entries) for entries in block)
-                row += block[agent] + [zero] * (width - len(block[agent]))
-            row += shared
+            for name, block in parts.items():
+                row += block[agent] + [zero] * (widths[name] - len(block[agent]))
+            for entries in shared.values():
+                row += entries
             if self.agent_id:
                 row += [one if i == agent else zero for i in range(len(self.team))]
             for value in self._positions[agent]:
@@ -188,6 +194,13 @@ class RobotTeam(ArrayTeam):
             rows.append(row)
         self._obs_index = np.array(rows, dtype=np.intp)
         self.obs_dim = self._obs_index.shape[1]
+        # the name and columns of each feature, in order (every agent's row has the same)
+        starts = np.cumsum([0, *widths.values()])
+        self._features = [
+            {"name": name, "start": int(start), "stop": int(start + width)}
+            for (name, width), start in zip(widths.items(), starts, strict=False)
+            if width
+        ]
         horizontal = set(qpos(root_joints(model))) - set(root_qpos.tolist())
         kept_qpos = [i for i in range(nq) if i not in horizontal]
         self._state_index = np.array(
@@ -199,6 +212,67 @@ class RobotTeam(ArrayTeam):
     def _extra_features(self) -> np.ndarray:
         features = self.spec.task_features
         return np.zeros(0) if features is None else features(self.physics)
+
+    def task_features(self) -> np.ndarray:
+        """The task's features now (e.g. a target's position), the `task` part of the
+        observation source in `wiring()`; empty for tasks without them."""
+        return np.asarray(self._extra_features(), dtype=np.float64)
+
+    def wiring(self) -> dict:
+        """How the policy's arrays map onto this robot, for a controller on the hardware:
+
+        - per agent, the actuators and joints it drives and, per action column, the actuator
+          it commands (its name and index in MuJoCo's ctrl) with
+          `ctrl = offset + scale * clip(action, -1, 1)` (`NO_ACTUATOR`: none);
+        - the observation: `obs[i, j] = source[index[i][j]]` with `source` the
+          concatenation of qpos, qvel, the task features and `constants` (0, 1, positions),
+          at the offsets in `source`, and the name and columns of each feature;
+        - the control timestep, and where the observation normaliser is."""
+        model, nq, nv = self._model, self._model.nq, self._model.nv
+        n_task = len(self._extra_features())
+        drives = dict(zip(self._action_driven.tolist(), range(len(self._ctrl_index)), strict=True))
+        agents = []
+        for row, agent in enumerate(self.active):
+            action = []
+            for col in range(self.action_width):
+                k = drives.get(row * self.action_width + col)
+                if k is None:
+                    action.append(NO_ACTUATOR)
+                    continue
+                half, ctrl = float(self._ctrl_half[k]), int(self._ctrl_index[k])
+                action.append(
+                    {
+                        "actuator": model.actuator(ctrl).name or f"#{ctrl}",
+                        "ctrl": ctrl,
+                        "scale": half,
+                        "offset": float(self._ctrl_low[k]) + half,
+                    }
+                )
+            agents.append(
+                {
+                    "name": self.agents[row],
+                    "actuators": [model.actuator(a).name for a in self.team[agent].actuators],
+                    "joints": self.joint_names(agent),
+                    "action": action,
+                }
+            )
+        end = nq + nv + n_task
+        return {
+            "control_timestep": float(self.control_timestep),
+            "physics_timestep": float(model.opt.timestep),
+            "agents": agents,
+            "observation": {
+                "features": self._features,
+                "source": {
+                    "qpos": [0, nq],
+                    "qvel": [nq, nq + nv],
+                    "task": [nq + nv, end],
+                    "constants": [end, end + len(self._constants)],
+                },
+                "constants": self._constants.tolist(),
+                "index": self._obs_index.tolist(),
+            },
+        }
 
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
