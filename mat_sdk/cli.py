@@ -135,6 +135,7 @@ def main() -> None:
       mat envs                          the robots and their agent decompositions
       mat rollout cheetah-6x1           a random team, to see an env work
       mat train cheetah-6x1 --steps 200000 --out runs/cheetah
+      mat train cheetah-6x1 --seeds 5 --steps 2000000 --out runs/c5   then: mat report runs/c5
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero
       mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
@@ -268,6 +269,40 @@ FINETUNE_OPTIONS = {
 
 
 @main.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+    help="Directory for report.md and the curves.",
+)  # fmt: skip
+@user_errors
+def report(runs, out_dir) -> None:
+    """Compare runs the way the field asks: IQM and mean with 95 % bootstrap CIs.
+
+    RUNS are run directories (or their parents, e.g. the OUT of `mat train --seeds`) holding
+    evaluations.json. Per task: IQM and mean over seeds of each seed's absolute metric, with
+    stratified-bootstrap confidence intervals (rliable), sample-efficiency curves with CI
+    bands, and the probability of improvement between algorithms. Needs
+    pip install 'mat-sdk[report]'.
+
+    \b
+    Example:
+      mat train cheetah-6x1 --seeds 5 --steps 2000000 --out runs/cheetah-mat
+      mat train cheetah-6x1 --seeds 5 --steps 2000000 --algo mappo --out runs/cheetah-mappo
+      mat report runs/cheetah-mat runs/cheetah-mappo --out docs/cheetah
+    """
+    try:
+        import rliable  # noqa: F401
+    except ImportError:
+        raise click.ClickException(
+            "mat report needs rliable: pip install 'mat-sdk[report]'"
+        ) from None
+    from mat_sdk.report import write_report
+
+    click.echo(write_report(list(runs), out_dir))
+    click.echo(f"written: {out_dir / 'report.md'}")
+
+
+@main.command()
 @click.argument("env_ids", nargs=-1, required=True)
 @click.option("--algo", default=TrainConfig.algo, show_default=True, help="mat | mat-dec | mappo")
 @click.option(
@@ -314,6 +349,23 @@ FINETUNE_OPTIONS = {
     metavar="[ADDRESS]",
     help="Rollouts on --workers Ray actors: a local Ray instance, or ADDRESS (e.g. auto).",
 )
+@click.option(
+    "--seeds",
+    metavar="S",
+    help="Run several seeds: a count (10: seeds 0-9), a range (3-7) or a list (0,4,9); each "
+    "in OUT/seed_K, as parallel processes (one per core). Rerun to resume unfinished seeds.",
+)
+@click.option(
+    "--eval-every",
+    type=click.IntRange(min=0),
+    help="Evaluate every this many env steps into OUT/evaluations.json (marl-eval layout), "
+    "keep the best policy (OUT/best.pt) and end with its absolute metric; 0: off  "
+    "[default: steps/20 for runs of 100,000 steps or more, else 0].",
+)
+@click.option(
+    "--eval-episodes", default=10, show_default=True, type=click.IntRange(min=1),
+    help="Deterministic episodes per evaluation (the absolute metric: 10x).",
+)  # fmt: skip
 @quiet_option()
 @user_errors
 def train(
@@ -330,6 +382,9 @@ def train(
     faults,
     settings,
     ray_address,
+    seeds,
+    eval_every,
+    eval_episodes,
     quiet,
 ) -> None:
     """Train a policy on ENV_ID with PPO (the paper's MA-MuJoCo recipe by default).
@@ -355,6 +410,11 @@ def train(
     from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
 
     env_id = env_ids[0]
+    if eval_every is None:
+        eval_every = steps // 20 if steps >= 100_000 else 0
+    if seeds is not None:
+        _train_seeds(click.get_current_context(), env_ids, seeds, out_dir, eval_every)
+        return
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
     ckpt = out / CHECKPOINT_NAME
     asked = {
@@ -392,10 +452,65 @@ def train(
     again += f" --workers {workers}" if workers else ""
     again += f" --update-workers {update_workers}" if update_workers else ""
     again += f" --device {device}" if device != "cpu" else ""
+    evaluations = None
+    if eval_every:
+        from mat_sdk.protocol import EvaluationLog
+
+        evaluations = EvaluationLog(out, eval_every, eval_episodes)
+        click.echo(
+            f"evaluating every {eval_every:,} steps on {eval_episodes} episodes into "
+            f"{evaluations.path} (--eval-every 0: off)"
+        )
     with resumable(ckpt, again), trainer:
-        trainer.learn(steps, progress_bar=not quiet)
+        trainer.learn(steps, callback=evaluations, progress_bar=not quiet)
+        if evaluations is not None and trainer.progress["steps"] >= steps:
+            absolute = evaluations.finish(trainer)
+            if absolute is not None:
+                import numpy as np
+
+                click.echo(
+                    f"absolute metric (best policy, {len(absolute)} episodes): "
+                    f"{np.mean(absolute):.2f} ± {np.std(absolute):.2f}"
+                )
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+def _train_seeds(context: click.Context, env_ids, seeds: str, out_dir, eval_every: int) -> None:
+    """`mat train ... --seeds S`: each seed as its own `mat train --seed K` process."""
+    from click.core import ParameterSource
+
+    from mat_sdk.multiseed import cores, parse_seeds, run_seeds
+
+    params = context.params
+    refused = [f"--{name.replace('_', '-')}" for name in ("seed", "resume", "ray_address")
+               if context.get_parameter_source(name) == ParameterSource.COMMANDLINE]  # fmt: skip
+    if refused:
+        raise click.UsageError(
+            f"--seeds runs seed K as `--seed K` and resumes unfinished seeds by itself; drop "
+            f"{', '.join(refused).replace('--ray-address', '--ray')} (Ray: not offered for seed "
+            "sets yet)"
+        )
+    chosen = parse_seeds(seeds)
+    out = Path(out_dir or f"runs/{env_ids[0].replace(':', '_')}-{params['algo']}")
+    args = [*env_ids, "--algo", params["algo"], "--steps", str(params["steps"])]
+    for name in ("num_envs", "workers", "update_workers", "device", "eval_episodes"):
+        args += [f"--{name.replace('_', '-')}", str(params[name])]
+    args += ["--eval-every", str(eval_every)]
+    for fault in params["faults"]:
+        args += ["--fault", fault]
+    for setting in params["settings"]:
+        args += ["--set", setting]
+    per_seed = 1 + params["workers"] + params["update_workers"]
+    processes = max(1, min(len(chosen), cores() // per_seed))
+    click.echo(f"{len(chosen)} seeds into {out}/seed_K, {processes} at a time")
+    failed = run_seeds(args, chosen, out, params["steps"], processes, params["quiet"])
+    if failed:
+        raise click.ClickException(
+            f"seeds {failed} failed (their logs: {out}/seed_K/train.log); the others finished. "
+            "Run the same command again to resume the failed seeds only"
+        )
+    click.echo(f"all {len(chosen)} seeds finished in {out}; compare them: mat report {out}")
 
 
 def _given_on_the_command_line(context: click.Context, asked: dict) -> dict:

@@ -1,0 +1,111 @@
+"""Seed sets (`mat train --seeds`), the evaluation protocol and `mat report`."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from mat_sdk import checkpoint
+from mat_sdk.multiseed import DONE_NAME, parse_seeds
+from mat_sdk.protocol import ABSOLUTE_FACTOR, env_and_task, read_evaluations
+
+# a run of a few seconds on the coordination game, evaluated every update
+TINY = [
+    "coordination-3", "--steps", "300", "--num-envs", "4", "--eval-every", "100",
+    "--eval-episodes", "3", "--set", "rollout_length=25", "--set", "num_minibatches=1",
+    "--set", "ppo_epochs=1", "--quiet",
+]  # fmt: skip
+
+
+def _mat(*args, check=True):
+    run = subprocess.run(
+        [sys.executable, "-m", "mat_sdk", *args], capture_output=True, text=True, timeout=300
+    )
+    if check:
+        assert run.returncode == 0, run.stdout + run.stderr
+    return run
+
+
+@pytest.mark.parametrize(
+    ("text", "seeds"), [("3", [0, 1, 2]), ("3-5", [3, 4, 5]), ("0,4,9", [0, 4, 9])]
+)
+def test_seeds_are_a_count_a_range_or_a_list(text, seeds):
+    assert parse_seeds(text) == seeds
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("0", "--seeds 0 runs nothing"),
+        ("5-3", "the range ends before it starts"),
+        ("1,1", "names a seed twice"),
+        ("two", "give a count (10), a range (3-7) or a list (0,4,9)"),
+    ],
+)
+def test_bad_seed_sets_name_the_problem(text, problem):
+    with pytest.raises(ValueError, match=problem.replace("(", r"\(").replace(")", r"\)")):
+        parse_seeds(text)
+
+
+def test_env_and_task_names_follow_marl_eval():
+    assert env_and_task("mamujoco:HalfCheetah-6x1") == ("mamujoco", "HalfCheetah-6x1")
+    assert env_and_task("cheetah-6x1") == ("mat_sdk", "cheetah-6x1")
+
+
+def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_path):
+    out = tmp_path / "set"
+    broken = out / "seed_1" / "checkpoint.pt"  # seed 1 will fail: a damaged checkpoint
+    broken.parent.mkdir(parents=True)
+    broken.write_bytes(b"not a checkpoint")
+    failed = _mat("train", *TINY, "--seeds", "0-1", "--out", str(out), check=False)
+    assert failed.returncode == 1 and "seeds [1] failed" in failed.stderr, failed.stderr
+    assert "Run the same command again to resume the failed seeds only" in failed.stderr
+    assert (out / "seed_0" / DONE_NAME).exists() and not (out / "seed_1" / DONE_NAME).exists()
+    assert "checkpoint" in (out / "seed_1" / "train.log").read_text()
+
+    broken.unlink()
+    finished = (out / "seed_0" / "checkpoint.pt").stat().st_mtime_ns
+    again = _mat("train", *TINY, "--seeds", "0-1", "--out", str(out))
+    assert "1 of 2 seeds already finished" in again.stdout, again.stdout
+    assert (out / "seed_0" / "checkpoint.pt").stat().st_mtime_ns == finished  # not rerun
+
+    _mat("train", *TINY, "--seed", "1", "--out", str(tmp_path / "solo"))
+    ours = checkpoint.load(out / "seed_1" / "checkpoint.pt")["model"]
+    solo = checkpoint.load(tmp_path / "solo" / "checkpoint.pt")["model"]
+    assert all(torch.equal(ours[k], solo[k]) for k in solo)  # seed 1 of a set = a solo seed 1
+    assert not all(
+        torch.equal(ours[k], v)
+        for k, v in checkpoint.load(out / "seed_0" / "checkpoint.pt")["model"].items()
+    )
+
+    # the protocol's record: evaluations every 100 steps, then the absolute metric
+    log = json.loads((out / "seed_1" / "evaluations.json").read_text())
+    run = log["mat_sdk"]["coordination-3"]["mat"]["seed_1"]
+    assert [run[f"step_{i}"]["step_count"] for i in (1, 2, 3)] == [100, 200, 300]
+    assert all(len(run[f"step_{i}"]["return"]) == 3 for i in (1, 2, 3))
+    assert len(run["absolute_metrics"]["return"]) == 3 * ABSOLUTE_FACTOR
+    assert (out / "seed_1" / "best.pt").exists()
+    assert set(read_evaluations([out])["mat_sdk"]["coordination-3"]["mat"]) == {"seed_0", "seed_1"}
+
+    pytest.importorskip("rliable")
+    _mat("train", *TINY, "--algo", "mat-dec", "--seeds", "2", "--out", str(tmp_path / "dec"))
+    report = _mat("report", str(out), str(tmp_path / "dec"), "--out", str(tmp_path / "report"))
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert text in report.stdout and "## mat_sdk: coordination-3" in text
+    assert "| mat | 2 |" in text and "| mat-dec | 2 |" in text and "| mat > mat-dec |" in text
+    assert (tmp_path / "report" / "mat_sdk_coordination-3.png").stat().st_size > 1000
+
+
+def test_a_seed_set_refuses_options_it_decides_itself(tmp_path):
+    run = _mat("train", *TINY, "--seeds", "2", "--seed", "3", "--out", str(tmp_path), check=False)
+    assert run.returncode == 2 and "--seeds runs seed K as `--seed K`" in run.stderr
+    assert "drop --seed" in run.stderr
+
+
+def test_report_without_evaluations_says_how_to_get_them(tmp_path):
+    pytest.importorskip("rliable")
+    run = _mat("report", str(tmp_path), "--out", str(tmp_path / "r"), check=False)
+    assert run.returncode == 1 and "no evaluations.json under" in run.stderr
+    assert "--eval-every" in run.stderr
