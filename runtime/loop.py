@@ -10,6 +10,10 @@ next tick: it sleeps until `spin_margin` before it, then busy-waits the rest, be
 sleep's wake-up on Linux overshoots by tens of microseconds, a large share of a 1 ms tick.
 A tick that overruns its slot is late; the loop does not try to catch up (the next tick
 starts at once and the schedule restarts from it).
+
+Under SCHED_FIFO do not `spin` the whole gap: a real-time task that never sleeps hits the
+kernel's real-time throttling (by default 50 ms of every second go to other tasks), which
+stalls the loop for that long (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ def realtime(cpu: int | None = None, fifo: int | None = None) -> list[str]:
     if fifo is not None:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
-            notes.append(f"SCHED_FIFO at priority {fifo}")
+            notes.append(f"SCHED_FIFO at priority {fifo} (sleep between ticks: do not spin)")
         except PermissionError:
             notes.append(
                 "SCHED_FIFO not permitted: run as root or grant CAP_SYS_NICE "

@@ -16,14 +16,18 @@ from pathlib import Path
 import numpy as np
 
 from mat_runtime import Policy, loop
-from mat_sdk.bench import machine, print_table
+from mat_sdk.bench import compare, machine, print_table
 from mat_sdk.bench.runtime import untrained_bundle
 from mat_sdk.envs import make_team
 
 ROBOTS = (("cheetah-6x1", 1000.0), ("swimmer-65", 100.0))  # (env, rate): n = 6, n = 64
 
 
-def _burn() -> None:
+def _burn(cores: set[int]) -> None:
+    """Spin forever at normal priority on any core (a child inherits the loop's pinning and
+    SCHED_FIFO, which would make it compete as a real-time task, or starve the machine)."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.sched_setaffinity(0, cores)
     while True:
         pass
 
@@ -49,17 +53,48 @@ def _measure(bundle: Path, env_id: str, rate: float, seconds: float, spin: bool)
     }
 
 
+def call_overhead(bundle: Path, seconds: float = 3.0) -> list[dict]:
+    """Back-to-back cost of one step at n = 6: `act(obs)`, `act(obs, out=...)` and ONNX
+    Runtime's own call on the same bound buffers (what the Python around it adds)."""
+    policy = Policy.load(bundle, threads=1)
+    obs = np.random.default_rng(0).standard_normal((6, policy.obs_dim)).astype(np.float32)
+    out = np.zeros((6, policy.action_size), np.float32)
+    policy.act(obs, out=out)
+    bound = policy._bound(1, 6)  # the buffers act(obs) just bound
+    times = compare(
+        {
+            "act(obs)": lambda: policy.act(obs),
+            "act(obs, out=...)": lambda: policy.act(obs, out=out),
+            "ORT run_with_iobinding alone": lambda: bound.session.run_with_iobinding(bound.binding),
+        },
+        seconds=seconds,
+    )
+    fastest = min(times.values())
+    return [
+        {
+            "call (n = 6, back to back)": name,
+            "µs": f"{t * 1e6:.1f}",
+            "vs ORT alone": f"{t / fastest:.2f}x",
+        }
+        for name, t in times.items()
+    ]
+
+
 def main(
     seconds: float = 10.0, cpu: int | None = None, fifo: int | None = None, spin: bool = False
 ) -> None:
+    every_core = os.sched_getaffinity(0)  # before pinning: where the load runs
     notes = loop.realtime(cpu, fifo)
     print(f"machine: {machine()}; {os.cpu_count()} CPUs; " + "; ".join(notes or ["no pinning"]))
     with tempfile.TemporaryDirectory() as tmp:
         bundles = {env_id: untrained_bundle(Path(tmp) / env_id, env_id)[0] for env_id, _ in ROBOTS}
+        print_table(call_overhead(bundles["cheetah-6x1"]), "one step, back to back")
         idle = [_measure(bundles[e], e, rate, seconds, spin) for e, rate in ROBOTS]
         print_table(idle, f"idle machine, {seconds:g} s per row")
         context = multiprocessing.get_context("spawn")
-        burners = [context.Process(target=_burn, daemon=True) for _ in range(os.cpu_count() or 1)]
+        burners = [
+            context.Process(target=_burn, args=(every_core,), daemon=True) for _ in every_core
+        ]
         for burner in burners:
             burner.start()
         try:
