@@ -62,8 +62,8 @@ def export(
     `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),
     which the runtime uses when it is given exactly N agents.
     """
-    out_dir = Path(out_dir)
-    _check_target(out_dir, force, Path(checkpoint_path))
+    out_dir, checkpoint_path = Path(out_dir), checkpoint.locate(checkpoint_path)  # or zoo:NAME
+    _check_target(out_dir, force, checkpoint_path)
     payload = checkpoint.load(checkpoint_path)
     staging = _staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:

@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from mat_runtime import zoo
+
 FORMAT = "mat-checkpoint"
 VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"  # a run directory's checkpoint
@@ -212,9 +214,18 @@ def remove_stale_temp_files(directory: str | os.PathLike) -> None:
         stale.unlink(missing_ok=True)
 
 
+def locate(path: str | os.PathLike) -> Path:
+    """The checkpoint file `path` names: itself, or a zoo model's (`zoo:NAME`)."""
+    try:
+        return zoo.locate(path, "checkpoint.pt")
+    except (ValueError, FileNotFoundError) as error:
+        raise CheckpointError(str(error)) from None
+
+
 def load(path: str | os.PathLike, map_location: str = "cpu") -> dict[str, Any]:
-    """Load and validate a checkpoint; raises `CheckpointError` with what is wrong."""
-    path = Path(path)
+    """Load and validate a checkpoint (a path, or `zoo:NAME`); raises `CheckpointError` with
+    what is wrong."""
+    path = locate(path)
     if path.is_dir():
         raise CheckpointError(f"{path} is a directory, not a checkpoint; {_directory_hint(path)}")
     if not path.is_file():

@@ -141,6 +141,7 @@ def main() -> None:
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat bench envs                    env stepping speed (also: runtime, jitter, train, scaling)
       mat bench seeds                   the learning tests' recipes on many seeds
+      mat zoo                           trained models that ship with the project (zoo:NAME)
     """
     # module:function env ids import from the current directory, as `python -m` would
     if os.getcwd() not in sys.path:
@@ -266,6 +267,55 @@ FINETUNE_OPTIONS = {
     "faults": "--fault NAME=zero|remove",
     "lr": "--lr",
 }
+
+
+@main.group(invoke_without_command=True)
+@click.pass_context
+@user_errors
+def zoo(context: click.Context) -> None:
+    """The model zoo: trained policies that ship with the project, used as zoo:NAME.
+
+    \b
+    zoo:NAME works wherever a checkpoint or a bundle does:
+      mat eval zoo:NAME --episodes 20        reproduces the card's return
+      mat finetune zoo:NAME NEW_ENV_ID       adapts it
+      mat export zoo:NAME -o DIR             re-exports it
+      mat_runtime.Policy.load("zoo:NAME")    its bundle, without torch
+    The zoo is zoo/ of a source checkout, or the directory MAT_ZOO names.
+    """
+    if context.invoked_subcommand is not None:
+        return
+    from mat_sdk.bench.zoo import cards
+
+    found = cards()
+    if not found:
+        from mat_runtime.zoo import zoo_dir
+
+        click.echo(f"no models in {zoo_dir()}")
+        return
+    click.echo("| name | env | algo | steps | seed | return (95 % CI) | random team |")
+    click.echo("|---|---|---|---|---|---|---|")
+    for card in found:
+        score = card["return"]
+        low, high = score["ci95"]
+        click.echo(
+            f"| zoo:{card['name']} | {card['env_id']} | {card['algo']} | {card['steps']:,} | "
+            f"{card['seed']} | {score['mean']:.1f} ({low:.1f} to {high:.1f}) | "
+            f"{card['random_team_return']:.1f} |"
+        )
+
+
+@zoo.command("add")
+@click.argument("run", type=click.Path(exists=True, path_type=Path))
+@click.argument("name")
+@click.option("--command", "made_by", required=True, help="The command that trained it.")
+@click.option("--episodes", default=20, show_default=True, help="Episodes the card reports.")
+@user_errors
+def zoo_add(run: Path, name: str, made_by: str, episodes: int) -> None:
+    """Add RUN (a run directory or checkpoint) to the zoo as NAME, with its card."""
+    from mat_sdk.bench.zoo import add, card_text
+
+    click.echo(card_text(add(run, name, made_by, episodes)))
 
 
 @main.command()

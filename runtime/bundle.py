@@ -12,6 +12,7 @@ from typing import Any
 
 from mat_runtime.errors import BundleError
 from mat_runtime.manifest import check_manifest
+from mat_runtime.zoo import locate
 
 FORMAT = "mat-onnx"
 SUPPORTED_VERSIONS = (1,)
@@ -27,8 +28,12 @@ class Bundle:
 
 
 def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle:
-    """The manifest, checked, and the graphs `select(manifest)` names, each checked by sha256."""
-    path = Path(path)
+    """The manifest, checked, and the graphs `select(manifest)` names, each checked by sha256.
+    `path` may name a zoo model: `zoo:NAME`."""
+    try:
+        path = locate(path, "onnx")
+    except (ValueError, FileNotFoundError) as error:
+        raise BundleError(str(error)) from None
     manifest_path = path / "manifest.json"
     if path.is_file():
         hint = (
