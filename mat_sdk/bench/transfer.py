@@ -213,7 +213,8 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
         seeds.setdefault((r["cell"], int(r["count"])), []).append(float(r["return_mean"]))
     cells = list(dict.fromkeys(r["cell"] for r in rows))
     counts = sorted({k for _, k in seeds})
-    curves = [c for c in cells if not c.startswith(("specialist-", "finetune-"))]
+    curves = [c for c in cells if not c.startswith(("specialist-", "finetune-", "random"))]
+    curves += ["random"] if "random" in cells else []  # the floor, last
 
     def cell(name, k):
         values = seeds.get((name, k))

@@ -1,0 +1,45 @@
+"""The transfer experiment's plan and report (the runs themselves: docs/TRANSFER.md)."""
+
+import argparse
+import csv
+
+from mat_sdk.bench import transfer
+
+
+def _args(**changes):
+    defaults = {"family": transfer.FAMILY, "train": [3, 4, 5], "targets": [8, 10], "pad": 12,
+                "counts": list(range(2, 13))}  # fmt: skip
+    return argparse.Namespace(**{**defaults, **changes})
+
+
+def test_the_plan_has_every_cell_of_the_experiment():
+    cells = transfer.train_cells(_args())
+    assert set(cells) == {"multi", "multi-fraction", "multi-ends", "single", "padded",
+                          "specialist-8", "specialist-10"}  # fmt: skip
+    ids = [transfer.FAMILY.format(k) for k in (3, 4, 5)]
+    assert cells["multi"] == (ids, None)
+    assert cells["multi-ends"] == (ids, {"position": "ends"})
+    assert cells["single"] == ([transfer.FAMILY.format(4)], None)
+    assert cells["padded"] == (ids, {"pad_agents": 12, "agent_id": True})
+    assert cells["specialist-10"] == ([transfer.FAMILY.format(10)], None)
+    assert transfer.cells_counts("specialist-8", _args()) == [8]
+    assert transfer.cells_counts("finetune-10/multi", _args()) == [10]
+    assert transfer.cells_counts("padded", _args(pad=6)) == [2, 3, 4, 5, 6]
+
+
+def test_the_report_compares_each_target_with_its_specialist(tmp_path):
+    table = tmp_path / "results.csv"
+    rows = [("random", 0, k, -10.0 * k) for k in (2, 8)]
+    for seed, offset in ((0, 0.0), (1, 2.0)):
+        rows += [("multi", seed, k, 10.0 + offset) for k in (2, 8)]
+        rows += [("specialist-8", seed, 8, 20.0 + offset), ("finetune-8/multi", seed, 8, 25.0)]
+    with table.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(transfer.FIELDS)
+        writer.writerows([*row, 0.0] for row in rows)
+    text = transfer.report(table, tmp_path / "plot.png", targets=[8])
+    assert "| 8 | 11.0 ± 1.0 | -80.0 |" in text  # count, multi, random (seeds' spread)
+    # 11 / 21 of the specialist; with the random team at 0: (11 + 80) / (21 + 80)
+    assert "| 8 | multi | 11.0 ± 1.0 | 0.52 | 0.90 |" in text
+    assert "| 8 | finetune-8/multi | 25.0 ± 0.0 | 1.19 | 1.04 |" in text
+    assert (tmp_path / "plot.png").stat().st_size > 1000
