@@ -30,11 +30,13 @@ def test_the_zoo_has_models_and_mat_zoo_lists_them():
 
 @pytest.mark.parametrize("name", MODELS)
 def test_a_zoo_model_reproduces_its_card_far_above_a_random_team(name):
+    """As `mat eval zoo:NAME --episodes N`: the same starts and batch, so the same returns up
+    to the float differences between CPUs (which a long episode can amplify)."""
     card = _card(name)
     score = card["return"]
     loaded = LoadedPolicy.from_checkpoint(f"zoo:{name}")
-    returns = evaluate(loaded, 3, seed=score["evaluation_seed"])  # the card's first episodes
-    np.testing.assert_allclose(returns, score["returns"][:3], rtol=0.02, atol=0.5)
+    returns = evaluate(loaded, score["episodes"], seed=score["evaluation_seed"])
+    assert abs(np.mean(returns) - score["mean"]) <= max(0.05 * abs(score["mean"]), 1.0)
     random = card["random_team_return"]
     assert np.mean(returns) > random + 0.5 * (score["mean"] - random) > random + 10
 
