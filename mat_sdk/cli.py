@@ -497,6 +497,7 @@ def train(
             raise FileExistsError(
                 f"{ckpt} exists; pass --resume to continue that run or choose another --out"
             )
+        asked["env_options"] = _family_identity(env_id, asked.get("env_options") or {})
         trainer = Trainer(asked.pop("env"), asked.pop("algo"), out_dir=out, **asked)
     again = f"mat train {' '.join(env_ids)} --out {out} --steps {steps} --resume"
     again += f" --workers {workers}" if workers else ""
@@ -524,6 +525,30 @@ def train(
                 )
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+FAMILY_IDENTITY = "ends"  # measured best of none / fraction / ends (docs/TRANSFER.md)
+
+
+def _family_identity(env_id: str, options: dict) -> dict:
+    """A new run on a family (`mat envs` marks them) gets the count-independent identity
+    that transferred best across counts, unless the options name one (null: none). The
+    checkpoint records it, so every tool rebuilds the same observations."""
+    from mat_sdk import envs
+
+    if "position" in options:
+        return options
+    try:
+        team = envs.make_team(env_id, **options)
+    except (ValueError, TypeError):
+        return options  # the trainer reports what is wrong with the env
+    if not team.variable_count:
+        return options
+    click.echo(
+        f"{env_id} is a family: agents observe position={FAMILY_IDENTITY!r} (closeness to each "
+        "end of the chain, docs/TRANSFER.md); --set 'env_options={\"position\": null}' for none"
+    )
+    return {**options, "position": FAMILY_IDENTITY}
 
 
 def _train_seeds(context: click.Context, env_ids, seeds: str, out_dir, eval_every: int) -> None:
