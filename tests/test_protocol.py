@@ -1,9 +1,11 @@
 """Seed sets (`mat train --seeds`), the evaluation protocol and `mat report`."""
 
 import json
+import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -54,6 +56,53 @@ def test_env_and_task_names_follow_marl_eval():
     assert env_and_task("cheetah-6x1") == ("mat_sdk", "cheetah-6x1")
 
 
+def test_a_seed_set_writes_one_ordinary_run_per_seed(tmp_path):
+    run = _mat("train", *TINY, "--steps", "100", "--seeds", "2", "--out", str(tmp_path))
+    assert "2 seeds into" in run.stdout and "all 2 seeds finished" in run.stdout, run.stdout
+    for seed in (0, 1):
+        directory = tmp_path / f"seed_{seed}"
+        assert (directory / DONE_NAME).exists() and (directory / "best.pt").exists()
+        payload = checkpoint.load(directory / "checkpoint.pt")
+        assert payload["config"]["train"]["seed"] == seed and payload["progress"]["steps"] == 100
+    evaluations = read_evaluations([tmp_path])["mat_sdk"]["coordination-3"]["mat"]
+    assert set(evaluations) == {"seed_0", "seed_1"}
+
+
+def test_the_report_gives_intervals_curves_and_the_probability_of_improvement(tmp_path):
+    pytest.importorskip("rliable")
+    rng = np.random.default_rng(0)
+    for algo, level in (("mat", 10.0), ("mappo", 5.0)):
+        runs = {
+            f"seed_{k}": {
+                **{
+                    f"step_{i}": {
+                        "step_count": 1000 * i,
+                        "return": list(level * i / 3 + rng.normal(size=4)),
+                    }
+                    for i in (1, 2, 3)
+                },
+                "absolute_metrics": {"return": list(level + rng.normal(size=40))},
+            }
+            for k in range(5)
+        }
+        run_dir = tmp_path / algo
+        run_dir.mkdir()
+        (run_dir / "evaluations.json").write_text(
+            json.dumps({"mamujoco": {"Ant-4x2": {algo: runs}}})
+        )
+    report = _mat(
+        "report", str(tmp_path / "mat"), str(tmp_path / "mappo"), "--out", str(tmp_path / "r")
+    )
+    text = (tmp_path / "r" / "report.md").read_text()
+    assert text in report.stdout and "## mamujoco: Ant-4x2" in text
+    row = next(line for line in text.splitlines() if line.startswith("| mat | 5 |"))
+    iqm, low, high = (float(x) for x in re.findall(r"-?\d+\.\d+", row)[:3])
+    assert low <= iqm <= high and 9 < iqm < 11
+    assert "| mat > mappo | 1.00 [1.00, 1.00] |" in text  # every MAT seed beats every MAPPO one
+    assert (tmp_path / "r" / "mamujoco_Ant-4x2.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
 def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_path):
     out = tmp_path / "set"
     broken = out / "seed_1" / "checkpoint.pt"  # seed 1 will fail: a damaged checkpoint

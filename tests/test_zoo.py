@@ -56,6 +56,7 @@ def test_a_zoo_bundle_serves_without_torch(name):
     assert out.returncode == 0 and _card(name)["env_id"] in out.stdout, out.stderr
 
 
+@pytest.mark.slow
 def test_a_zoo_model_fine_tunes(tmp_path):
     name = MODELS[0]
     run = subprocess.run(
