@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=100, help="the first episode's start")
     args = parser.parse_args()
 
-    policy = Policy.load(args.bundle)  # once: every count below is served by this session
+    policy = Policy.load(args.bundle)  # once: one ONNX Runtime session serves every count below
     rng = np.random.default_rng(0)
     print(f"{policy}\ntrained on agent counts {policy.manifest['agents'].get('trained_counts')}\n")
     print("| episode | env | agents | policy return | random team |")

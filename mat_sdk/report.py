@@ -39,8 +39,21 @@ def _curve(runs: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
         steps = sorted((k for k in run if k.startswith("step_")), key=lambda k: int(k[5:]))
         series.append([(run[k]["step_count"], float(np.mean(run[k]["return"]))) for k in steps])
     length = min(len(s) for s in series)
-    counts = np.array([s[i][0] for i in range(length) for s in series[:1]])
+    counts = np.array([step for step, _ in series[0][:length]])
     return counts, np.array([[value for _, value in s[:length]] for s in series])
+
+
+def _iqm_and_mean(scores: np.ndarray) -> np.ndarray:
+    from rliable import metrics
+
+    return np.array([metrics.aggregate_iqm(scores), metrics.aggregate_mean(scores)])
+
+
+def _iqm_per_evaluation(scores: np.ndarray) -> np.ndarray:
+    """[seeds, 1 task, evaluations] -> the IQM at each evaluation."""
+    from rliable import metrics
+
+    return np.array([metrics.aggregate_iqm(scores[..., i]) for i in range(scores.shape[-1])])
 
 
 def write_report(paths: list[Path], out: Path) -> str:
@@ -75,12 +88,8 @@ def write_report(paths: list[Path], out: Path) -> str:
                 scores[algo] = np.array([[score] for score, _ in finals])  # [seeds, 1 task]
                 kinds[algo] = sorted({kind for _, kind in finals})
                 curves[algo] = _curve(list(seeds.values()))
-
-            def aggregates(x):
-                return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
-
             point, interval = rly.get_interval_estimates(
-                scores, aggregates, reps=BOOTSTRAP_REPS, confidence_interval_size=CONFIDENCE,
+                scores, _iqm_and_mean, reps=BOOTSTRAP_REPS, confidence_interval_size=CONFIDENCE,
                 random_state=rng,
             )  # fmt: skip
             lines += ["", f"## {env}: {task}", "",
@@ -109,12 +118,8 @@ def write_report(paths: list[Path], out: Path) -> str:
                 if not len(steps):
                     continue
                 per_step = {algo: values[:, None, :]}  # [seeds, 1 task, evaluations]
-
-                def iqm_curve(x):
-                    return np.array([metrics.aggregate_iqm(x[..., i]) for i in range(x.shape[-1])])
-
                 centre, band = rly.get_interval_estimates(
-                    per_step, iqm_curve, reps=BOOTSTRAP_REPS, random_state=rng
+                    per_step, _iqm_per_evaluation, reps=BOOTSTRAP_REPS, random_state=rng
                 )
                 (line,) = axis.plot(steps, centre[algo], label=f"{algo} ({len(values)} seeds)")
                 axis.fill_between(steps, band[algo][0], band[algo][1], alpha=0.2,

@@ -44,6 +44,11 @@ FAULT_MODES = ("zero", "remove")
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # includes ctrl and the solver's warmstart
 
 
+def _actuator_name(model, actuator: int) -> str:
+    """An actuator's name, or `#index` for an unnamed one."""
+    return model.actuator(actuator).name or f"#{actuator}"
+
+
 class RobotTeam(ArrayTeam):
     """A multi-agent robot with the array API. See `mat_sdk.envs.make` for the options."""
 
@@ -172,10 +177,10 @@ class RobotTeam(ArrayTeam):
         }
         widths = {name: max(len(entries) for entries in block) for name, block in parts.items()}
         root_qpos, root_qvel = root_feature_indices(model)
-        shared = {"task": list(range(nq + nv, nq + nv + n_extra))}
+        shared = {}
         if self.spec.root_features:
             shared = {"root.qpos": root_qpos.tolist(), "root.qvel": (nq + root_qvel).tolist()}
-            shared["task"] = list(range(nq + nv, nq + nv + n_extra))
+        shared["task"] = list(range(nq + nv, nq + nv + n_extra))
         widths |= {name: len(entries) for name, entries in shared.items()}
         widths |= {"id": len(self.team) if self.agent_id else 0}
         widths |= {"position": self._positions.shape[1]}
@@ -242,7 +247,7 @@ class RobotTeam(ArrayTeam):
                 half, ctrl = float(self._ctrl_half[k]), int(self._ctrl_index[k])
                 action.append(
                     {
-                        "actuator": model.actuator(ctrl).name or f"#{ctrl}",
+                        "actuator": _actuator_name(model, ctrl),
                         "ctrl": ctrl,
                         "scale": half,
                         "offset": float(self._ctrl_low[k]) + half,
@@ -251,7 +256,7 @@ class RobotTeam(ArrayTeam):
             agents.append(
                 {
                     "name": self.agents[row],
-                    "actuators": [model.actuator(a).name for a in self.team[agent].actuators],
+                    "actuators": [_actuator_name(model, a) for a in self.team[agent].actuators],
                     "joints": self.joint_names(agent),
                     "action": action,
                 }
