@@ -8,6 +8,8 @@
 Each tick runs `act` (timed) and then `step` (sensor read, actuator write), then waits for the
 next tick: it sleeps until `spin_margin` before it, then busy-waits the rest, because a
 sleep's wake-up on Linux overshoots by tens of microseconds, a large share of a 1 ms tick.
+Python's cyclic garbage collector is off while the loop runs (collected once before it, and
+restored after): a collection over a simulator's heap pauses for milliseconds, a whole tick.
 A tick that overruns its slot is late; the loop does not try to catch up (the next tick
 starts at once and the schedule restarts from it).
 
@@ -18,6 +20,7 @@ stalls the loop for that long (BENCHMARKS.md).
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from collections.abc import Callable
@@ -102,9 +105,23 @@ def run(
         raise ValueError(
             f"rate and seconds must be > 0 and warmup >= 0; got {rate}, {seconds}, {warmup}"
         )
-    period, clock = 1.0 / rate, time.perf_counter
+    period = 1.0 / rate
     warm_ticks, ticks = int(warmup * rate), max(1, int(seconds * rate))
     act_seconds, wake_seconds = np.empty(ticks), np.empty(ticks)  # no allocation per tick
+    collecting = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        return _ticks(act, step, rate, period, warm_ticks, ticks, spin, spin_margin,
+                      act_seconds, wake_seconds)  # fmt: skip
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _ticks(act, step, rate, period, warm_ticks, ticks, spin, spin_margin, act_seconds,
+           wake_seconds) -> Ticks:  # fmt: skip
+    clock = time.perf_counter
     late, start, next_tick = 0, 0.0, clock()
     for tick in range(-warm_ticks, ticks):
         if tick == 0:
