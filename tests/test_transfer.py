@@ -3,12 +3,14 @@
 import argparse
 import csv
 
+import pytest
+
 from mat_sdk.bench import transfer
 
 
 def _args(**changes):
     defaults = {"family": transfer.FAMILY, "train": [3, 4, 5], "targets": [8, 10], "pad": 12,
-                "counts": list(range(2, 13))}  # fmt: skip
+                "counts": list(range(2, 13)), "cells": None}  # fmt: skip
     return argparse.Namespace(**{**defaults, **changes})
 
 
@@ -17,14 +19,22 @@ def test_the_plan_has_every_cell_of_the_experiment():
     assert set(cells) == {"multi", "multi-fraction", "multi-ends", "single", "padded",
                           "specialist-8", "specialist-10"}  # fmt: skip
     ids = [transfer.FAMILY.format(k) for k in (3, 4, 5)]
-    assert cells["multi"] == (ids, None)
+    id_free = {"position": None}  # named, or `mat train` would give a family "ends"
+    assert cells["multi"] == (ids, id_free)
     assert cells["multi-ends"] == (ids, {"position": "ends"})
-    assert cells["single"] == ([transfer.FAMILY.format(4)], None)
-    assert cells["padded"] == (ids, {"pad_agents": 12, "agent_id": True})
-    assert cells["specialist-10"] == ([transfer.FAMILY.format(10)], None)
+    assert cells["single"] == ([transfer.FAMILY.format(4)], id_free)
+    assert cells["padded"] == (ids, {"pad_agents": 12, "agent_id": True, **id_free})
+    assert cells["specialist-10"] == ([transfer.FAMILY.format(10)], id_free)
     assert transfer.cells_counts("specialist-8", _args()) == [8]
     assert transfer.cells_counts("finetune-10/multi", _args()) == [10]
     assert transfer.cells_counts("padded", _args(pad=6)) == [2, 3, 4, 5, 6]
+
+
+def test_a_subset_of_cells_runs_alone_and_a_misspelt_one_is_refused():
+    cells = transfer.train_cells(_args(cells=["multi-ends", "specialist-8"]))
+    assert set(cells) == {"multi-ends", "specialist-8"}
+    with pytest.raises(SystemExit, match="unknown cells \\['specialist-9'\\]"):
+        transfer.train_cells(_args(cells=["multi-ends", "specialist-9"]))
 
 
 def test_the_report_compares_each_target_with_its_specialist(tmp_path):

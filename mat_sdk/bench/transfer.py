@@ -14,8 +14,9 @@ each cell can be rerun by hand. Per seed:
 Each bundle is then evaluated through `mat_runtime` (no torch) on every count of `--counts`,
 `--episodes` deterministic episodes from the same starts, beside a random team.
 
-Finished runs are skipped and interrupted ones resumed, so re-running continues the
-experiment; `--report-only` redraws the table and plot from OUT/results.csv.
+`--cells multi-ends specialist-8 ...` runs a subset (for a costlier family). Finished runs are
+skipped and interrupted ones resumed, so re-running continues the experiment; `--report-only`
+redraws the table and plot from OUT/results.csv.
 """
 
 from __future__ import annotations
@@ -50,14 +51,18 @@ def train_cells(args) -> dict[str, tuple[list[str], dict | None]]:
     """{run name: (`mat train` arguments but --out, env options)} for one seed."""
     ids = [args.family.format(k) for k in args.train]
     middle = args.family.format(args.train[len(args.train) // 2])
-    cells = {}
-    for name, position in IDENTITIES.items():
-        options = {"position": position} if position else None
-        cells[name] = ([*ids], options)
-    cells["single"] = ([middle], None)
-    cells["padded"] = ([*ids], {"pad_agents": args.pad, "agent_id": True})
+    # every cell names its identity: `mat train` would give a family position="ends"
+    id_free = {"position": None}
+    cells = {name: ([*ids], {"position": position}) for name, position in IDENTITIES.items()}
+    cells["single"] = ([middle], id_free)
+    cells["padded"] = ([*ids], {"pad_agents": args.pad, "agent_id": True, **id_free})
     for k in args.targets:
-        cells[f"specialist-{k}"] = ([args.family.format(k)], None)
+        cells[f"specialist-{k}"] = ([args.family.format(k)], id_free)
+    if args.cells:
+        unknown = sorted(set(args.cells) - set(cells))
+        if unknown:
+            raise SystemExit(f"unknown cells {unknown}; the cells are {sorted(cells)}")
+        cells = {name: cell for name, cell in cells.items() if name in args.cells}
     return cells
 
 
@@ -139,7 +144,7 @@ def run_experiment(args) -> None:
         for job in jobs:
             job.result()
         for k in args.targets:
-            for name in IDENTITIES:
+            for name in [name for name in IDENTITIES if name in cells]:
                 for seed in args.seeds:
                     run = out / f"finetune-{k}" / name / f"seed_{seed}"
                     runs[f"finetune-{k}/{name}", seed] = run
@@ -288,6 +293,9 @@ def main() -> None:
     parser.add_argument("--finetune", type=float, default=0.05, help="fraction of --steps")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--episodes", type=int, default=5, help="per count and bundle")
+    parser.add_argument(
+        "--cells", nargs="+", help="run only these training cells (and fine-tune their multi ones)"
+    )
     parser.add_argument("--jobs", type=int, default=2, help="runs at once (one core each)")
     parser.add_argument("--out", type=Path, default=Path("runs/transfer"))
     parser.add_argument("--report-only", action="store_true")
