@@ -208,6 +208,16 @@ def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """A small text file (JSON beside a run) written whole or not at all: a reader never sees
+    half of it."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(text)
+    os.replace(temporary, path)
+    return path
+
+
 def remove_stale_temp_files(directory: str | os.PathLike) -> None:
     """Temp files a killed writer left behind; call when a run (the only writer) starts."""
     for stale in Path(directory).glob(".*.pt.*.tmp"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -12,6 +13,7 @@ from pathlib import Path
 import click
 
 from mat_sdk.config import TrainConfig
+from mat_sdk.processes import usable_cores
 
 OUR_PACKAGES = ("mat_sdk", "mat_export", "mat_runtime")
 # What our code raises on purpose for a user's mistake; raised from anywhere else, it is a bug.
@@ -230,8 +232,6 @@ def parse_settings(values: tuple[str, ...], own: dict[str, str] | None = None) -
     `own`: the fields this command sets through options of their own (field -> option); a
     `--set` of one of them is refused, since the two would contradict each other.
     """
-    import json
-
     settings = {}
     for value in values:
         key, sep, raw = value.partition("=")
@@ -416,6 +416,14 @@ def report(runs, out_dir) -> None:
     "--eval-episodes", default=10, show_default=True, type=click.IntRange(min=1),
     help="Deterministic episodes per evaluation (the absolute metric: 10x).",
 )  # fmt: skip
+@click.option(
+    "--tune/--no-tune",
+    default=None,
+    help="Before training, measure the update settings this machine runs fastest (update "
+    "workers, torch.compile, subnormal flushing), print them and use them; kept in "
+    "OUT/tuning.json for reruns  [default: on for CPU runs of 1,000,000 steps or more; "
+    "a setting given on the command line is kept as given].",
+)
 @quiet_option()
 @user_errors
 def train(
@@ -435,6 +443,7 @@ def train(
     seeds,
     eval_every,
     eval_episodes,
+    tune,
     quiet,
 ) -> None:
     """Train a policy on ENV_ID with PPO (the paper's MA-MuJoCo recipe by default).
@@ -463,7 +472,7 @@ def train(
     if eval_every is None:
         eval_every = steps // 20 if steps >= 100_000 else 0
     if seeds is not None:
-        _train_seeds(click.get_current_context(), env_ids, seeds, out_dir, eval_every)
+        _train_seeds(click.get_current_context(), env_ids, seeds, out_dir, eval_every, tune)
         return
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
     ckpt = out / CHECKPOINT_NAME
@@ -498,10 +507,13 @@ def train(
                 f"{ckpt} exists; pass --resume to continue that run or choose another --out"
             )
         asked["env_options"] = _family_identity(env_id, asked.get("env_options") or {})
+        context = click.get_current_context()
+        asked |= _tuned(context, asked, out, tune, free_cores=usable_cores() - 1)
         trainer = Trainer(asked.pop("env"), asked.pop("algo"), out_dir=out, **asked)
     again = f"mat train {' '.join(env_ids)} --out {out} --steps {steps} --resume"
     again += f" --workers {workers}" if workers else ""
-    again += f" --update-workers {update_workers}" if update_workers else ""
+    if trainer.config.update_workers:
+        again += f" --update-workers {trainer.config.update_workers}"
     again += f" --device {device}" if device != "cpu" else ""
     evaluations = None
     if eval_every:
@@ -525,6 +537,29 @@ def train(
                 )
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+def _tuned(context: click.Context, asked: dict, out: Path, tune: bool | None, free_cores: int):
+    """The update settings measured fastest on this machine (`mat_sdk.bench.tuning`), for
+    a run that asks for them (`--tune`) or a long CPU run by default; those the command line
+    gives stay as given. -> {field: value} to train with ({} when not tuning)."""
+    from mat_sdk.bench.tuning import TUNED, tuned_settings, wanted
+
+    given = _given_on_the_command_line(context, asked)
+    fixed = {name: given[name] for name in TUNED if name in given}
+    on_cpu = asked["device"] == "cpu" or (asked["device"] == "auto" and not _cuda())
+    if not wanted(tune, context.params["steps"], on_cpu, fixed):
+        return {}
+    # a seed set comes here before its seeds add the family identity themselves
+    options = _family_identity(asked["env"], asked.get("env_options") or {})
+    run = {**asked, "env_options": options}
+    return tuned_settings(out, run, fixed, max(0, free_cores), echo=click.echo)
+
+
+def _cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
 
 
 FAMILY_IDENTITY = "ends"  # measured best of none / fraction / ends (docs/TRANSFER.md)
@@ -551,11 +586,14 @@ def _family_identity(env_id: str, options: dict) -> dict:
     return {**options, "position": FAMILY_IDENTITY}
 
 
-def _train_seeds(context: click.Context, env_ids, seeds: str, out_dir, eval_every: int) -> None:
-    """`mat train ... --seeds S`: each seed as its own `mat train --seed K` process."""
+def _train_seeds(
+    context: click.Context, env_ids, seeds: str, out_dir, eval_every: int, tune: bool | None
+) -> None:
+    """`mat train ... --seeds S`: each seed as its own `mat train --seed K` process; the
+    update settings are tuned once, here, and given to every seed."""
     from click.core import ParameterSource
 
-    from mat_sdk.multiseed import cores, parse_seeds, run_seeds
+    from mat_sdk.multiseed import parse_seeds, run_seeds
 
     params = context.params
     refused = [f"--{name.replace('_', '-')}" for name in ("seed", "resume", "ray_address")
@@ -568,16 +606,27 @@ def _train_seeds(context: click.Context, env_ids, seeds: str, out_dir, eval_ever
         )
     chosen = parse_seeds(seeds)
     out = Path(out_dir or f"runs/{env_ids[0].replace(':', '_')}-{params['algo']}")
-    args = [*env_ids, "--algo", params["algo"], "--steps", str(params["steps"])]
-    for name in ("num_envs", "workers", "update_workers", "device", "eval_episodes"):
+    asked = {"env": env_ids[0], "algo": params["algo"], "faults": parse_faults(params["faults"]),
+             **{name: params[name] for name in ("num_envs", "workers", "update_workers", "device")},
+             **parse_settings(params["settings"], TRAIN_OPTIONS)}  # fmt: skip
+    if len(env_ids) > 1:
+        asked["more_envs"] = list(env_ids[1:])
+    # tuned so that no seed waits for a core: each keeps its share of them
+    share = usable_cores() // min(len(chosen), usable_cores())
+    tuned = _tuned(context, asked, out, tune, free_cores=share - 1 - params["workers"])
+    update_workers = tuned.pop("update_workers", params["update_workers"])
+    args = [*env_ids, "--algo", params["algo"], "--steps", str(params["steps"]), "--no-tune"]
+    for name in ("num_envs", "workers", "device", "eval_episodes"):
         args += [f"--{name.replace('_', '-')}", str(params[name])]
-    args += ["--eval-every", str(eval_every)]
+    args += ["--update-workers", str(update_workers), "--eval-every", str(eval_every)]
     for fault in params["faults"]:
         args += ["--fault", fault]
     for setting in params["settings"]:
         args += ["--set", setting]
-    per_seed = 1 + params["workers"] + params["update_workers"]
-    processes = max(1, min(len(chosen), cores() // per_seed))
+    for name, value in tuned.items():
+        args += ["--set", f"{name}={json.dumps(value)}"]
+    per_seed = 1 + params["workers"] + update_workers
+    processes = max(1, min(len(chosen), usable_cores() // per_seed))
     click.echo(f"{len(chosen)} seeds into {out}/seed_K, {processes} at a time")
     failed = run_seeds(args, chosen, out, params["steps"], processes, params["quiet"])
     if failed:

@@ -139,8 +139,7 @@ class TrainConfig:
 
         if self.torch_threads:
             torch.set_num_threads(self.torch_threads)
-        if self.flush_denormal:
-            torch.set_flush_denormal(True)
+        torch.set_flush_denormal(self.flush_denormal)  # both ways: a process may train twice
 
     def resolve_device(self):
         """The torch device to train on ("auto": CUDA where torch sees it, else the CPU), or

@@ -9,7 +9,6 @@ same command again resumes what did not finish and skips what did.
 
 from __future__ import annotations
 
-import os
 import re
 import subprocess
 import sys
@@ -41,10 +40,6 @@ def parse_seeds(text: str) -> list[int]:
             raise ValueError(f"--seeds {text} names a seed twice")
         return seeds
     raise ValueError(f"--seeds {text!r}: give a count (10), a range (3-7) or a list (0,4,9)")
-
-
-def cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _steps_done(run: Path) -> int:

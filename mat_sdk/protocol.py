@@ -14,12 +14,12 @@ layout, which `mat report` (and marl-eval itself) reads:
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mat_sdk.checkpoint import write_text_atomic
 from mat_sdk.evaluation import LoadedPolicy, evaluate
 
 EVALUATIONS_NAME = "evaluations.json"
@@ -90,9 +90,7 @@ class EvaluationLog:
         return returns
 
     def _write(self) -> None:
-        temporary = self.path.with_suffix(".json.tmp")
-        temporary.write_text(json.dumps(self.data, indent=1) + "\n")
-        os.replace(temporary, self.path)  # a reader never sees half a file
+        write_text_atomic(self.path, json.dumps(self.data, indent=1) + "\n")
 
 
 def _index(key: str) -> int:

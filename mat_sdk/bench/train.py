@@ -15,7 +15,7 @@ import torch
 
 from mat_sdk.bench import compare, print_table
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
-from mat_sdk.gradients import MinibatchGradients
+from mat_sdk.bench.tuning import twin
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.processes import usable_cores
 from mat_sdk.rollout import RolloutCollector
@@ -53,25 +53,6 @@ def _keeping_subnormals(step):
     return run
 
 
-def _variant(
-    trainer: Trainer,
-    batch: dict[str, torch.Tensor],
-    update_workers: int = 0,
-    compile_mode: str | None = None,
-) -> Trainer:
-    """The trainer's own optimizer step on a private copy of its policy, with the chosen
-    levers (`compile_mode`: torch.compile's mode for the loss, None for eager)."""
-    twin = copy.copy(trainer)
-    twin.policy = copy.deepcopy(trainer.policy)
-    twin.build_optimizer()
-    twin.value_norm = ValueNorm(device=trainer.device)
-    twin.gradients = MinibatchGradients(
-        twin.policy, twin.params, trainer.config, update_workers, compile_mode
-    )
-    twin.gradients.share(batch)
-    return twin
-
-
 def main(
     env_id: str = "cheetah-6x1",
     device: str = "cpu",
@@ -98,26 +79,26 @@ def main(
         cpu = trainer.device.type == "cpu"
         split = cpu and usable_cores() > 1  # an update worker needs a core of its own
         twins = {
-            "ours, subnormals kept": _variant(trainer, batch),
-            "ours (default)": _variant(trainer, batch),
+            "ours, subnormals kept": twin(trainer, batch),
+            "ours (default)": twin(trainer, batch),
         }
         if split:
-            twins["ours + 1 update worker"] = _variant(trainer, batch, update_workers=1)
+            twins["ours + 1 update worker"] = twin(trainer, batch, update_workers=1)
         if compiled:
-            twins["ours + torch.compile"] = _variant(trainer, batch, compile_mode="default")
+            twins["ours + torch.compile"] = twin(trainer, batch, compile_mode="default")
             if split:
-                twins["ours + torch.compile + 1 update worker"] = _variant(
+                twins["ours + torch.compile + 1 update worker"] = twin(
                     trainer, batch, update_workers=1, compile_mode="default"
                 )
             if not cpu:  # the GPU step is launch-bound: CUDA graphs
-                twins["ours + torch.compile (CUDA graphs)"] = _variant(
+                twins["ours + torch.compile (CUDA graphs)"] = twin(
                     trainer, batch, compile_mode="reduce-overhead"
                 )
         variants = {
             "reference (official style)": _reference_step(trainer, batch),
             "reference, subnormals kept": _keeping_subnormals(_reference_step(trainer, batch)),
         }
-        variants |= {name: partial(twin.optimizer_step, batch) for name, twin in twins.items()}
+        variants |= {name: partial(copied.optimizer_step, batch) for name, copied in twins.items()}
         variants["ours, subnormals kept"] = _keeping_subnormals(variants["ours, subnormals kept"])
         for step in variants.values():  # warm-up (and compilation)
             step(minibatches[0])
@@ -157,6 +138,6 @@ def main(
         )
         print_table(rows, title)
     finally:
-        for twin in twins.values():
-            twin.gradients.close()
+        for copied in twins.values():
+            copied.gradients.close()
         trainer.close()

@@ -78,6 +78,7 @@ def _train(ids: list[str], options, seed: int, steps: int, out: Path) -> None:
         return
     resume = ["--resume"] if (out / "checkpoint.pt").exists() else []
     command = ["mat", "train", *ids, "--seed", str(seed), "--steps", str(steps)]
+    command += ["--eval-every", "0"]  # evaluated afterwards, through the runtime
     _run([*command, "--out", str(out), "--quiet", *resume, *_settings(options)], out / "log.txt")
     (out / "done").touch()
 
