@@ -21,9 +21,15 @@ def mat_checkpoint(tmp_path_factory):
     return make_checkpoint(tmp_path_factory.mktemp("ckpt") / "mat.pt", n_block=2, n_head=2)
 
 
-def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path):
-    manifest = export(mat_checkpoint, tmp_path / "bundle")
-    bundle = tmp_path / "bundle"
+@pytest.fixture(scope="module")
+def mat_bundle(mat_checkpoint, tmp_path_factory):
+    """The checkpoint's bundle, exported once for the tests that only read it."""
+    bundle = tmp_path_factory.mktemp("export") / "bundle"
+    return bundle, export(mat_checkpoint, bundle)
+
+
+def test_mat_bundle_matches_torch_and_describes_itself(mat_bundle):
+    bundle, manifest = mat_bundle
     assert sorted(p.name for p in bundle.iterdir()) == [
         "decode.onnx",
         "decode_n2.onnx",  # unrolled for hopper-2x2's two agents
@@ -58,8 +64,7 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_checkpoint, tmp_path)
         assert props["obs_dim"] == on_disk["obs_dim"] and props["algo"] == "mat"
 
 
-def test_export_is_deterministic(mat_checkpoint, tmp_path):
-    export(mat_checkpoint, tmp_path / "a")
+def test_export_is_deterministic(mat_checkpoint, mat_bundle, tmp_path):
     export(mat_checkpoint, tmp_path / "b")
     for name in (
         "encoder.onnx",
@@ -68,7 +73,7 @@ def test_export_is_deterministic(mat_checkpoint, tmp_path):
         "decode_n2.onnx",
         "manifest.json",
     ):
-        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+        assert (mat_bundle[0] / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 
 
 @pytest.mark.parametrize(
@@ -116,19 +121,19 @@ def test_bad_input_is_refused_and_nothing_is_overwritten(mat_checkpoint, tmp_pat
     assert not (tmp_path / "out").exists()
 
 
-def test_force_replaces_only_a_bundle_of_its_own_files(mat_checkpoint, tmp_path):
+def test_force_replaces_only_a_bundle_of_its_own_files(mat_checkpoint, mat_bundle, tmp_path):
     import shutil
     import time
 
     bundle = tmp_path / "bundle"
-    export(mat_checkpoint, bundle)
+    shutil.copytree(mat_bundle[0], bundle)  # as an export leaves it
     (bundle / "notes.txt").write_text("mine")
     with pytest.raises(ExportError, match=r"holds files that are not the bundle's \(notes.txt\)"):
         export(mat_checkpoint, bundle, force=True)
     assert (bundle / "notes.txt").read_text() == "mine" and (bundle / "decode.onnx").exists()
 
     run = tmp_path / "run"  # the checkpoint exported into its own directory's bundle
-    export(mat_checkpoint, run)
+    shutil.copytree(mat_bundle[0], run)
     shutil.copy(mat_checkpoint, run / "checkpoint.pt")
     with pytest.raises(ExportError, match="holds the checkpoint being exported"):
         export(run / "checkpoint.pt", run, force=True)
@@ -157,30 +162,30 @@ def test_a_checkpoint_of_an_unknown_env_exports_nothing(mat_checkpoint, tmp_path
     assert not (tmp_path / "out").exists()
 
 
-def test_mat_export_command(mat_checkpoint, tmp_path):
+def test_mat_export_command(mat_checkpoint, mat_bundle, tmp_path):
+    import shutil
+
     out = tmp_path / "cli_bundle"
-    result = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out)])
-    assert result.exit_code == 0, result.output
-    assert "max abs diff" in result.output and (out / "manifest.json").exists()
+    shutil.copytree(mat_bundle[0], out)  # a bundle is there already
     again = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out)])
     assert (
         again.exit_code != 0 and "pass --force" in again.output and "Traceback" not in again.output
     )
     forced = CliRunner().invoke(main, ["export", str(mat_checkpoint), "-o", str(out), "--force"])
     assert forced.exit_code == 0, forced.output
+    assert "max abs diff" in forced.output and (out / "manifest.json").exists()
 
 
-def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, tmp_path):
+def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, mat_bundle):
     import onnxruntime as ort
 
-    export(mat_checkpoint, tmp_path / "bundle")
     payload = checkpoint.load(mat_checkpoint)
     obs = (
         np.random.default_rng(1)
         .normal(size=(1, 2, payload["config"]["env"]["obs_dim"]))
         .astype(np.float32)
     )
-    session = ort.InferenceSession(str(tmp_path / "bundle" / "encoder.onnx"))
+    session = ort.InferenceSession(str(mat_bundle[0] / "encoder.onnx"))
     _, values = session.run(None, {"obs": obs})
     from mat_sdk.evaluation import LoadedPolicy
     from mat_sdk.normalization import ValueNorm
@@ -196,14 +201,13 @@ def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, tmp_path
 
 
 def test_decode_graph_runs_the_whole_control_step_and_samples_from_given_noise(
-    mat_checkpoint, tmp_path
+    mat_checkpoint, mat_bundle
 ):
     import onnxruntime as ort
 
     from mat_sdk.evaluation import LoadedPolicy
 
-    export(mat_checkpoint, tmp_path / "bundle")
-    session = ort.InferenceSession(str(tmp_path / "bundle" / "decode.onnx"))
+    session = ort.InferenceSession(str(mat_bundle[0] / "decode.onnx"))
     assert [i.name for i in session.get_inputs()] == ["obs", "noise"]
     names = ["actions", "clipped_actions", "mean", "std", "values", "obs_check"]
     assert [o.name for o in session.get_outputs()] == names
