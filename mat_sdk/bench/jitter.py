@@ -1,9 +1,11 @@
 """The control loop's worst ticks, idle and under load (`mat bench jitter`).
 
-Runs `mat_runtime.loop` (what `examples/controller.py` runs) on simulated robots at the
-paper's model size, one ORT thread, `act(obs, out=...)`: n = 6 (cheetah-6x1) at 1 kHz and
-n = 64 (swimmer-65) at 100 Hz, each for `seconds` with the machine otherwise idle, and again
-while one busy process per core (started and stopped here) competes for every CPU.
+First one step back to back: medians, then call by call (the machine's own spread, the floor
+of the loop's figures). Then `mat_runtime.loop` (what `examples/controller.py` runs) on
+simulated robots at the paper's model size, one ORT thread, `act(obs, out=...)`: n = 6
+(cheetah-6x1) at 1 kHz and n = 64 (swimmer-65) at 100 Hz, each for `seconds` with the
+machine otherwise idle, and again while one busy process per core (started and stopped
+here) competes for every CPU.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +83,34 @@ def call_overhead(bundle: Path, seconds: float = 3.0) -> list[dict]:
     ]
 
 
+def call_by_call(bundle: Path, calls: int = 20_000) -> list[dict]:
+    """`act(obs, out=...)` at n = 6 timed call by call, back to back: the spread the machine
+    itself gives a step, with no loop, sleep or wake-up (the floor of the loop's figures).
+    A 0.5 ms pause every 20 calls keeps a SCHED_FIFO process under real-time throttling."""
+    policy = Policy.load(bundle, threads=1)
+    obs = np.random.default_rng(0).standard_normal((6, policy.obs_dim)).astype(np.float32)
+    out = np.zeros((6, policy.action_size), np.float32)
+    times, clock = np.empty(calls), time.perf_counter
+    for i in range(-1000, calls):  # the first thousand warm up
+        start = clock()
+        policy.act(obs, out=out)
+        if i >= 0:
+            times[i] = clock() - start
+        if i % 20 == 0:
+            time.sleep(0.0005)
+    micros = times * 1e6
+    p50, p99, p999 = np.percentile(micros, [50, 99, 99.9])
+    return [
+        {
+            "call (n = 6, one by one)": f"act(obs, out=...), {calls:,} calls",
+            "p50 µs": f"{p50:.0f}",
+            "p99 µs": f"{p99:.0f}",
+            "p99.9 µs": f"{p999:.0f}",
+            "max µs": f"{micros.max():.0f}",
+        }
+    ]
+
+
 def main(
     seconds: float = 10.0, cpu: int | None = None, fifo: int | None = None, spin: bool = False
 ) -> None:
@@ -89,6 +120,7 @@ def main(
     with tempfile.TemporaryDirectory() as tmp:
         bundles = {env_id: untrained_bundle(Path(tmp) / env_id, env_id)[0] for env_id, _ in ROBOTS}
         print_table(call_overhead(bundles["cheetah-6x1"]), "one step, back to back")
+        print_table(call_by_call(bundles["cheetah-6x1"]), "one step, back to back, call by call")
         idle = [_measure(bundles[e], e, rate, seconds, spin) for e, rate in ROBOTS]
         print_table(idle, f"idle machine, {seconds:g} s per row")
         context = multiprocessing.get_context("spawn")
