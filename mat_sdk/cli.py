@@ -403,7 +403,9 @@ def report(runs, out_dir) -> None:
     "--seeds",
     metavar="S",
     help="Run several seeds: a count (10: seeds 0-9), a range (3-7) or a list (0,4,9); each "
-    "in OUT/seed_K, as parallel processes (one per core). Rerun to resume unfinished seeds.",
+    "in OUT/seed_K, as parallel processes (one per core), or with --ray as Ray tasks over the "
+    "cluster's nodes (OUT on storage they all see; a killed task is retried from its "
+    "checkpoint). Rerun to resume unfinished seeds.",
 )
 @click.option(
     "--eval-every",
@@ -593,16 +595,15 @@ def _train_seeds(
     update settings are tuned once, here, and given to every seed."""
     from click.core import ParameterSource
 
-    from mat_sdk.multiseed import parse_seeds, run_seeds
+    from mat_sdk.multiseed import parse_seeds, ray_launcher, run_seeds
 
     params = context.params
-    refused = [f"--{name.replace('_', '-')}" for name in ("seed", "resume", "ray_address")
+    refused = [f"--{name}" for name in ("seed", "resume")
                if context.get_parameter_source(name) == ParameterSource.COMMANDLINE]  # fmt: skip
     if refused:
         raise click.UsageError(
             f"--seeds runs seed K as `--seed K` and resumes unfinished seeds by itself; drop "
-            f"{', '.join(refused).replace('--ray-address', '--ray')} (Ray: not offered for seed "
-            "sets yet)"
+            f"{', '.join(refused)}"
         )
     chosen = parse_seeds(seeds)
     out = Path(out_dir or f"runs/{env_ids[0].replace(':', '_')}-{params['algo']}")
@@ -626,9 +627,15 @@ def _train_seeds(
     for name, value in tuned.items():
         args += ["--set", f"{name}={json.dumps(value)}"]
     per_seed = 1 + params["workers"] + update_workers
-    processes = max(1, min(len(chosen), usable_cores() // per_seed))
-    click.echo(f"{len(chosen)} seeds into {out}/seed_K, {processes} at a time")
-    failed = run_seeds(args, chosen, out, params["steps"], processes, params["quiet"])
+    if params["ray_address"] is None:
+        processes = max(1, min(len(chosen), usable_cores() // per_seed))
+        click.echo(f"{len(chosen)} seeds into {out}/seed_K, {processes} at a time")
+        launch = {}
+    else:  # every seed a Ray task of per_seed CPUs, queued by Ray; OUT on storage every node sees
+        processes = len(chosen)
+        launch = {"launch": ray_launcher(params["ray_address"], per_seed)}
+        click.echo(f"{len(chosen)} seeds into {out}/seed_K as Ray tasks of {per_seed} CPU(s)")
+    failed = run_seeds(args, chosen, out, params["steps"], processes, params["quiet"], **launch)
     if failed:
         raise click.ClickException(
             f"seeds {failed} failed (their logs: {out}/seed_K/train.log); the others finished. "

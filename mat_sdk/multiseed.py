@@ -4,12 +4,19 @@ Seed K is exactly `mat train ENV --seed K --out RUN/seed_K` (the same command, r
 process), so every tool takes RUN/seed_K unchanged and a seed of a set equals a solo run.
 On CPU a seed's update is compute-bound, so separate processes are the fast way to run many
 (BENCHMARKS.md). A failed seed is reported with its log; the others carry on, and running the
-same command again resumes what did not finish and skips what did.
+same command again resumes what did not finish and skips what did. With `--ray` each seed is
+a Ray task instead (`ray_launcher`), retried from its checkpoint when its run or worker is
+killed.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import functools
+import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -51,17 +58,112 @@ def _steps_done(run: Path) -> int:
     return int(lines[-1].split(",")[0]) if len(lines) > 1 else 0
 
 
+def seed_command(train_args: list[str], seed: int, run: Path) -> list[str]:
+    """Seed K's child: `mat train *train_args --seed K --out run`, resumed when `run` holds
+    a checkpoint, started through `_die_with_parent` (below)."""
+    command = [*train_args, "--seed", str(seed), "--out", str(run), "--quiet"]
+    if (run / "checkpoint.pt").exists():
+        command.append("--resume")
+    parent = ["--parent", str(os.getpid())]
+    return [sys.executable, "-m", "mat_sdk.multiseed", *parent, "train", *command]
+
+
+class _LocalSeed:
+    """One seed as a child process of this one."""
+
+    def __init__(self, train_args: list[str], seed: int, run: Path):
+        self.log = (run / LOG_NAME).open("a")
+        command = seed_command(train_args, seed, run)
+        self.process = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def poll(self) -> tuple[int, str] | None:
+        """None while it runs, then (exit status, what went wrong or "")."""
+        code = self.process.poll()
+        if code is None:
+            return None
+        self.log.close()
+        return code, f"exit {code}"
+
+    def stop(self) -> None:
+        self.process.terminate()
+        self.process.wait()
+        self.log.close()
+
+
+class SeedInterrupted(RuntimeError):
+    """A seed's child was killed by a signal: Ray retries the task, which resumes it."""
+
+
+def _ray_seed(train_args: list[str], seed: int, run: str) -> int:
+    """One seed as a Ray task: its child runs on the task's node, into `run` (a path every
+    node sees, e.g. on shared storage), resuming from the checkpoint a killed try left."""
+    run_dir = Path(run)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with (run_dir / LOG_NAME).open("a") as log:
+        command = seed_command(train_args, seed, run_dir)
+        code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
+    if code < 0:
+        raise SeedInterrupted(f"seed {seed}'s run was killed by signal {-code}")
+    return code
+
+
+class _RaySeed:
+    """One seed as a Ray task; a killed try (its child or its worker) is retried."""
+
+    def __init__(self, task, train_args: list[str], seed: int, run: Path):
+        import ray
+
+        self.ray, self.ref = ray, task.remote(train_args, seed, str(run.resolve()))
+
+    def poll(self) -> tuple[int, str] | None:
+        ready, _ = self.ray.wait([self.ref], timeout=0)
+        if not ready:
+            return None
+        try:
+            code = self.ray.get(self.ref)
+        except self.ray.exceptions.RayError as error:
+            return 1, f"Ray gave up after {RAY_RETRIES} retries: {str(error).splitlines()[0]}"
+        return code, f"exit {code}"
+
+    def stop(self) -> None:
+        self.ray.cancel(self.ref, force=True)  # the worker dies, and its child with it
+
+
+RAY_RETRIES = 3  # tries of a seed's task after its worker or child was killed
+
+
+def ray_launcher(address: str, cpus_per_seed: int):
+    """Start seeds as Ray tasks on the cluster at `address` ("local": a Ray instance here),
+    each asking for `cpus_per_seed` CPUs and retried up to RAY_RETRIES times when killed."""
+    from mat_sdk.ray_rollouts import connect
+
+    connect(address)
+    import ray
+
+    task = ray.remote(
+        num_cpus=cpus_per_seed, max_retries=RAY_RETRIES, retry_exceptions=[SeedInterrupted]
+    )(_ray_seed)
+    return functools.partial(_RaySeed, task)
+
+
 def run_seeds(
-    train_args: list[str], seeds: list[int], out: Path, steps: int, processes: int, quiet: bool
+    train_args: list[str],
+    seeds: list[int],
+    out: Path,
+    steps: int,
+    processes: int,
+    quiet: bool,
+    launch=_LocalSeed,
 ) -> list[int]:
     """Run `mat train *train_args --seed K --out out/seed_K` for every seed not finished yet,
-    at most `processes` at a time; returns the seeds that failed."""
+    at most `processes` at a time, each started by `launch(train_args, seed, run)` (a child
+    process here, or `ray_launcher`'s tasks); returns the seeds that failed."""
     out.mkdir(parents=True, exist_ok=True)
     pending = [k for k in seeds if not (out / f"seed_{k}" / DONE_NAME).exists()]
     skipped = len(seeds) - len(pending)
     if skipped:
         print(f"{skipped} of {len(seeds)} seeds already finished in {out}; running the rest")
-    running: dict[int, tuple[subprocess.Popen, object]] = {}
+    running: dict[int, _LocalSeed | _RaySeed] = {}
     failed: list[int] = []
     bar = tqdm(total=steps * len(seeds), unit="step", disable=quiet, desc=f"{len(seeds)} seeds")
     try:
@@ -70,44 +172,43 @@ def run_seeds(
                 seed = pending.pop(0)
                 run = out / f"seed_{seed}"
                 run.mkdir(exist_ok=True)
-                command = [
-                    sys.executable,
-                    "-m",
-                    "mat_sdk",
-                    "train",
-                    *train_args,
-                    "--seed",
-                    str(seed),
-                ]
-                command += ["--out", str(run), "--quiet"]
-                if (run / "checkpoint.pt").exists():
-                    command.append("--resume")
-                log = (run / LOG_NAME).open("a")
-                running[seed] = (
-                    subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT),
-                    log,
-                )
+                running[seed] = launch(train_args, seed, run)
             time.sleep(0.5)
-            for seed, (process, log) in list(running.items()):
-                if process.poll() is None:
+            for seed, launched in list(running.items()):
+                result = launched.poll()
+                if result is None:
                     continue
-                log.close()
                 del running[seed]
                 run = out / f"seed_{seed}"
-                if process.returncode == 0:
+                if result[0] == 0:
                     (run / DONE_NAME).touch()
                 else:
                     failed.append(seed)
-                    tqdm.write(
-                        f"seed {seed} failed (exit {process.returncode}); its log: {run / LOG_NAME}"
-                    )
+                    tqdm.write(f"seed {seed} failed ({result[1]}); its log: {run / LOG_NAME}")
             bar.n = sum(min(steps, _steps_done(out / f"seed_{k}")) for k in seeds)
             bar.set_postfix(running=len(running), failed=len(failed))
             bar.refresh()
     finally:
         bar.close()
-        for process, log in running.values():  # interrupted: stop the children, keep their runs
-            process.terminate()
-            process.wait()
-            log.close()
+        for launched in running.values():  # interrupted: stop the children, keep their runs
+            launched.stop()
     return sorted(failed)
+
+
+def _die_with_parent(parent: int, argv: list[str]) -> None:
+    """Become `mat *argv`, to be killed when the process that started it dies (Linux's
+    parent-death signal, kept across exec): a seed never outlives its `--seeds` run or its
+    Ray task, so a retry or a rerun never races a stray run in the same directory."""
+    with contextlib.suppress(OSError, AttributeError):  # not Linux: no such guarantee
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent died before the signal was set
+        sys.exit(f"the process that started this seed ({parent}) is gone")
+    os.execv(sys.executable, [sys.executable, "-m", "mat_sdk", *argv])
+
+
+PR_SET_PDEATHSIG = 1
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3 or sys.argv[1] != "--parent":
+        sys.exit("usage: python -m mat_sdk.multiseed --parent PID COMMAND...")
+    _die_with_parent(int(sys.argv[2]), sys.argv[3:])

@@ -62,6 +62,27 @@ class RolloutWorker:
         return self.collector.collect(update_norm=True, keep_raw=True)
 
 
+def connect(address: str, cpus: int = 0) -> bool:
+    """Join the Ray cluster at `address`, or start a Ray instance here ("local": at least
+    `cpus` CPUs, however many cores there are); True when this call started Ray."""
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--ray needs Ray: pip install 'mat-sdk[ray]'") from None
+
+    if ray.is_initialized():
+        return False
+    local = address in ("", "local")
+    ray.init(
+        address=None if local else address,
+        num_cpus=max(os.cpu_count() or 1, cpus) if local else None,
+        object_store_memory=256 * 1024**2 if local else None,
+        include_dashboard=False,
+        log_to_driver=False,
+    )
+    return True
+
+
 class RayRollouts:
     """The learner's handle on its Ray workers."""
 
@@ -69,16 +90,7 @@ class RayRollouts:
         import ray
 
         self.ray = ray
-        self._started_ray = not ray.is_initialized()
-        if self._started_ray:
-            local = config.ray in ("", "local")
-            ray.init(
-                address=None if local else config.ray,
-                num_cpus=max(os.cpu_count() or 1, config.workers) if local else None,
-                object_store_memory=256 * 1024**2 if local else None,
-                include_dashboard=False,
-                log_to_driver=False,
-            )
+        self._started_ray = connect(config.ray, cpus=config.workers)
         workers = max(1, config.workers)
         if workers > config.num_envs:
             raise ValueError(
