@@ -12,7 +12,8 @@ each cell can be rerun by hand. Per seed:
 - `specialist-K`: from scratch on each unseen count of `--targets`, with the same budget;
 - `finetune-K/<multi variant>`: each multi policy adapted to K with `--finetune` x the budget.
 Each bundle is then evaluated through `mat_runtime` (no torch) on every count of `--counts`,
-`--episodes` deterministic episodes from the same starts, beside a random team.
+`--episodes` deterministic episodes from the same starts, beside a random team and a team held
+still (zero actions).
 
 `--cells multi-ends specialist-8 ...` runs a subset (for a costlier family). Finished runs are
 skipped and interrupted ones resumed, so re-running continues the experiment; `--report-only`
@@ -40,6 +41,9 @@ FAMILY = "mamujoco:ManySegmentSwimmer-{}x2"
 RECIPE = {"lr": 3e-4, "ppo_epochs": 5, "gamma": 0.999}
 IDENTITIES = {"multi": None, "multi-fraction": "fraction", "multi-ends": "ends"}
 FIELDS = ["cell", "seed", "count", "return_mean", "return_std"]
+# Teams to compare with: uniform random actions (the normalisation's 0), and zero actions (a
+# robot held still: on a walker that earns the alive bonus without any control cost)
+REFERENCES = ("random", "still")
 
 
 def _settings(options: dict | None = None, recipe: dict = RECIPE) -> list[str]:
@@ -103,12 +107,13 @@ def _export(run: Path) -> Path:
     return bundle
 
 
-def evaluate(bundle: str | None, counts: list[int], episodes: int, family: str) -> dict:
-    """{count: returns} of a bundle acting through the runtime (None: a random team)."""
+def evaluate(bundle: str, counts: list[int], episodes: int, family: str) -> dict:
+    """{count: returns} of a bundle acting through the runtime, or of a reference team
+    (`REFERENCES`)."""
     from mat_runtime import Policy
     from mat_sdk.envs import make_team
 
-    policy = Policy.load(bundle) if bundle else None
+    policy = None if bundle in REFERENCES else Policy.load(bundle)
     options = policy.env_options if policy else {}
     rng = np.random.default_rng(0)
     results = {}
@@ -118,8 +123,10 @@ def evaluate(bundle: str | None, counts: list[int], episodes: int, family: str) 
         for episode in range(episodes):
             obs, total, done = team.reset(seed=EVALUATION_SEED + episode), 0.0, False
             while not done:
-                if policy is None:
+                if bundle == "random":
                     actions = rng.uniform(-1, 1, (team.n_agents, team.action_width))
+                elif bundle == "still":
+                    actions = np.zeros((team.n_agents, team.action_width))
                 else:
                     actions = policy.act(obs)
                 obs, reward, terminated, truncated = team.step(actions)
@@ -167,14 +174,13 @@ def run_experiment(args) -> None:
         with table.open() as f:
             done = {(r["cell"], int(r["seed"])) for r in csv.DictReader(f)}
     todo = {key: bundle for key, bundle in bundles.items() if key not in done}
-    if ("random", 0) not in done:
-        todo["random", 0] = None
+    todo |= {(name, 0): name for name in REFERENCES if (name, 0) not in done}
     with ProcessPoolExecutor(args.jobs) as pool:
         futures = {}
         for (name, seed), bundle in todo.items():
             counts = cells_counts(name, args)
             futures[name, seed] = pool.submit(
-                evaluate, bundle and str(bundle), counts, args.episodes, args.family
+                evaluate, str(bundle), counts, args.episodes, args.family
             )
         for (name, seed), future in futures.items():
             _append(table, name, seed, future.result())
@@ -219,8 +225,8 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
         seeds.setdefault((r["cell"], int(r["count"])), []).append(float(r["return_mean"]))
     cells = list(dict.fromkeys(r["cell"] for r in rows))
     counts = sorted({k for _, k in seeds})
-    curves = [c for c in cells if not c.startswith(("specialist-", "finetune-", "random"))]
-    curves += ["random"] if "random" in cells else []  # the floor, last
+    curves = [c for c in cells if not c.startswith(("specialist-", "finetune-", *REFERENCES))]
+    curves += [c for c in REFERENCES if c in cells]  # the references, last
 
     def cell(name, k):
         values = seeds.get((name, k))
@@ -242,7 +248,7 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
             continue
         best, floor = np.mean(specialist), np.mean(seeds[("random", k)])
         lines.append(f"| {k} | specialist-{k} | {cell(f'specialist-{k}', k)} | 1 | 1 |")
-        compared = [c for c in cells if c != "random" and not c.startswith("specialist-")]
+        compared = [c for c in cells if c not in REFERENCES and not c.startswith("specialist-")]
         for name in [c for c in compared if c in curves or c.startswith(f"finetune-{k}/")]:
             values = seeds.get((name, k))
             if not values:
@@ -258,7 +264,8 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
         ks = [k for k in counts if (name, k) in seeds]
         mean = np.array([np.mean(seeds[name, k]) for k in ks])
         std = np.array([np.std(seeds[name, k]) for k in ks])
-        style = {"linestyle": ":", "color": "gray"} if name == "random" else {}
+        gray = {"random": ":", "still": "--"}
+        style = {"linestyle": gray[name], "color": "gray"} if name in gray else {}
         (line,) = axis.plot(ks, mean, marker="o", markersize=3, label=name, **style)
         axis.fill_between(ks, mean - std, mean + std, alpha=0.15, color=line.get_color())
     for name in [c for c in cells if c.startswith(("specialist-", "finetune-"))]:
