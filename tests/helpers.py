@@ -1,5 +1,8 @@
 """Helpers shared by the tests."""
 
+import subprocess
+import sys
+
 import torch
 from torch import nn
 
@@ -27,3 +30,14 @@ def make_checkpoint(path, env_id="hopper-2x2", algo="mat", **options):
         trainer.learn(20, progress_bar=False)
         trained_like(trainer.policy)  # unit-gain weights: parity must hold on a real-scale net
         return trainer.save(path)
+
+
+def mat(*args, check=True) -> subprocess.CompletedProcess:
+    """`mat ARGS...` in a fresh process, as a user runs it; asserts success unless `check` is
+    False."""
+    run = subprocess.run(
+        [sys.executable, "-m", "mat_sdk", *args], capture_output=True, text=True, timeout=300
+    )
+    if check:
+        assert run.returncode == 0, run.stdout + run.stderr
+    return run

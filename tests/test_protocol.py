@@ -2,12 +2,11 @@
 
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
+from helpers import mat
 
 from mat_sdk import checkpoint
 from mat_sdk.multiseed import DONE_NAME, parse_seeds
@@ -19,15 +18,6 @@ TINY = [
     "--eval-episodes", "3", "--set", "rollout_length=25", "--set", "num_minibatches=1",
     "--set", "ppo_epochs=1", "--quiet",
 ]  # fmt: skip
-
-
-def _mat(*args, check=True):
-    run = subprocess.run(
-        [sys.executable, "-m", "mat_sdk", *args], capture_output=True, text=True, timeout=300
-    )
-    if check:
-        assert run.returncode == 0, run.stdout + run.stderr
-    return run
 
 
 @pytest.mark.parametrize(
@@ -57,7 +47,7 @@ def test_env_and_task_names_follow_marl_eval():
 
 
 def test_a_seed_set_writes_one_ordinary_run_per_seed(tmp_path):
-    run = _mat("train", *TINY, "--steps", "100", "--seeds", "2", "--out", str(tmp_path))
+    run = mat("train", *TINY, "--steps", "100", "--seeds", "2", "--out", str(tmp_path))
     assert "2 seeds into" in run.stdout and "all 2 seeds finished" in run.stdout, run.stdout
     for seed in (0, 1):
         directory = tmp_path / f"seed_{seed}"
@@ -90,7 +80,7 @@ def test_the_report_gives_intervals_curves_and_the_probability_of_improvement(tm
         (run_dir / "evaluations.json").write_text(
             json.dumps({"mamujoco": {"Ant-4x2": {algo: runs}}})
         )
-    report = _mat(
+    report = mat(
         "report", str(tmp_path / "mat"), str(tmp_path / "mappo"), "--out", str(tmp_path / "r")
     )
     text = (tmp_path / "r" / "report.md").read_text()
@@ -108,7 +98,7 @@ def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_p
     broken = out / "seed_1" / "checkpoint.pt"  # seed 1 will fail: a damaged checkpoint
     broken.parent.mkdir(parents=True)
     broken.write_bytes(b"not a checkpoint")
-    failed = _mat("train", *TINY, "--seeds", "0-1", "--out", str(out), check=False)
+    failed = mat("train", *TINY, "--seeds", "0-1", "--out", str(out), check=False)
     assert failed.returncode == 1 and "seeds [1] failed" in failed.stderr, failed.stderr
     assert "Run the same command again to resume the failed seeds only" in failed.stderr
     assert (out / "seed_0" / DONE_NAME).exists() and not (out / "seed_1" / DONE_NAME).exists()
@@ -116,11 +106,11 @@ def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_p
 
     broken.unlink()
     finished = (out / "seed_0" / "checkpoint.pt").stat().st_mtime_ns
-    again = _mat("train", *TINY, "--seeds", "0-1", "--out", str(out))
+    again = mat("train", *TINY, "--seeds", "0-1", "--out", str(out))
     assert "1 of 2 seeds already finished" in again.stdout, again.stdout
     assert (out / "seed_0" / "checkpoint.pt").stat().st_mtime_ns == finished  # not rerun
 
-    _mat("train", *TINY, "--seed", "1", "--out", str(tmp_path / "solo"))
+    mat("train", *TINY, "--seed", "1", "--out", str(tmp_path / "solo"))
     ours = checkpoint.load(out / "seed_1" / "checkpoint.pt")["model"]
     solo = checkpoint.load(tmp_path / "solo" / "checkpoint.pt")["model"]
     assert all(torch.equal(ours[k], solo[k]) for k in solo)  # seed 1 of a set = a solo seed 1
@@ -139,8 +129,8 @@ def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_p
     assert set(read_evaluations([out])["mat_sdk"]["coordination-3"]["mat"]) == {"seed_0", "seed_1"}
 
     pytest.importorskip("rliable")
-    _mat("train", *TINY, "--algo", "mat-dec", "--seeds", "2", "--out", str(tmp_path / "dec"))
-    report = _mat("report", str(out), str(tmp_path / "dec"), "--out", str(tmp_path / "report"))
+    mat("train", *TINY, "--algo", "mat-dec", "--seeds", "2", "--out", str(tmp_path / "dec"))
+    report = mat("report", str(out), str(tmp_path / "dec"), "--out", str(tmp_path / "report"))
     text = (tmp_path / "report" / "report.md").read_text()
     assert text in report.stdout and "## mat_sdk: coordination-3" in text
     assert "| mat | 2 |" in text and "| mat-dec | 2 |" in text and "| mat > mat-dec |" in text
@@ -148,13 +138,13 @@ def test_a_seed_set_equals_solo_runs_resumes_a_failed_seed_and_is_reported(tmp_p
 
 
 def test_a_seed_set_refuses_options_it_decides_itself(tmp_path):
-    run = _mat("train", *TINY, "--seeds", "2", "--seed", "3", "--out", str(tmp_path), check=False)
+    run = mat("train", *TINY, "--seeds", "2", "--seed", "3", "--out", str(tmp_path), check=False)
     assert run.returncode == 2 and "--seeds runs seed K as `--seed K`" in run.stderr
     assert "drop --seed" in run.stderr
 
 
 def test_report_without_evaluations_says_how_to_get_them(tmp_path):
     pytest.importorskip("rliable")
-    run = _mat("report", str(tmp_path), "--out", str(tmp_path / "r"), check=False)
+    run = mat("report", str(tmp_path), "--out", str(tmp_path / "r"), check=False)
     assert run.returncode == 1 and "no evaluations.json under" in run.stderr
     assert "--eval-every" in run.stderr

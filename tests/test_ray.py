@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from helpers import GAME
+from helpers import GAME, mat
 
 from mat_sdk.trainer import Trainer
 
@@ -106,8 +106,7 @@ def test_a_seed_set_on_ray_retries_killed_seeds_from_their_checkpoints(tmp_path)
         assert checkpoint.load(out / f"seed_{seed}" / "checkpoint.pt")["progress"]["steps"] == 6000
 
     solo = tmp_path / "solo"
-    subprocess.run([sys.executable, "-m", "mat_sdk", "train", *args, "--seed", "1", "--out",
-                    str(solo)], check=True, capture_output=True)  # fmt: skip
+    mat("train", *args, "--seed", "1", "--out", str(solo))
     ours = checkpoint.load(out / "seed_1" / "checkpoint.pt")["model"]
     theirs = checkpoint.load(solo / "checkpoint.pt")["model"]
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)  # as if never killed

@@ -1,11 +1,10 @@
 """Update settings measured on this machine before a long run (`mat train --tune`)."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 import torch
+from helpers import mat
 
 from mat_sdk import checkpoint
 from mat_sdk.bench.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
@@ -15,15 +14,6 @@ TINY = [
     "coordination-3", "--steps", "200", "--num-envs", "4", "--set", "rollout_length=25",
     "--set", "num_minibatches=2", "--set", "ppo_epochs=2", "--set", "compile=false", "--quiet",
 ]  # fmt: skip
-
-
-def _mat(*args, check=True):
-    run = subprocess.run(
-        [sys.executable, "-m", "mat_sdk", *args], capture_output=True, text=True, timeout=300
-    )
-    if check:
-        assert run.returncode == 0, run.stdout + run.stderr
-    return run
 
 
 def _flags(chosen: dict) -> list[str]:
@@ -43,7 +33,7 @@ def test_long_cpu_runs_tune_unless_told_and_the_given_settings_stay():
 
 
 def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
-    run = _mat("train", *TINY, "--tune", "--out", str(tmp_path / "tuned"))
+    run = mat("train", *TINY, "--tune", "--out", str(tmp_path / "tuned"))
     assert "measuring the update settings" in run.stdout and "chosen: " in run.stdout
     record = json.loads((tmp_path / "tuned" / TUNING_NAME).read_text())
     chosen = record["chosen"]
@@ -53,7 +43,7 @@ def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
     train = checkpoint.load(tmp_path / "tuned" / "checkpoint.pt")["config"]["train"]
     assert {name: train[name] for name in chosen} == chosen and train["compile"] is False
 
-    _mat("train", *TINY, *_flags(chosen), "--no-tune", "--out", str(tmp_path / "given"))
+    mat("train", *TINY, *_flags(chosen), "--no-tune", "--out", str(tmp_path / "given"))
     tuned = checkpoint.load(tmp_path / "tuned" / "checkpoint.pt")["model"]
     given = checkpoint.load(tmp_path / "given" / "checkpoint.pt")["model"]
     assert all(torch.equal(tuned[k], given[k]) for k in given)  # the measurement left no trace
@@ -63,7 +53,7 @@ def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
 @pytest.mark.slow
 def test_a_seed_set_is_tuned_once_and_a_rerun_keeps_the_settings(tmp_path):
     out = tmp_path / "set"
-    run = _mat("train", *TINY, "--steps", "100", "--seeds", "2", "--tune", "--out", str(out))
+    run = mat("train", *TINY, "--steps", "100", "--seeds", "2", "--tune", "--out", str(out))
     assert "chosen: " in run.stdout, run.stdout
     chosen = json.loads((out / TUNING_NAME).read_text())["chosen"]
     for seed in (0, 1):
@@ -71,12 +61,12 @@ def test_a_seed_set_is_tuned_once_and_a_rerun_keeps_the_settings(tmp_path):
         train = checkpoint.load(out / f"seed_{seed}" / "checkpoint.pt")["config"]["train"]
         assert {name: train[name] for name in chosen} == chosen
 
-    again = _mat("train", *TINY, "--steps", "100", "--seeds", "2", "--tune", "--out", str(out))
+    again = mat("train", *TINY, "--steps", "100", "--seeds", "2", "--tune", "--out", str(out))
     assert "as measured before" in again.stdout and "measuring" not in again.stdout
     assert "2 of 2 seeds already finished" in again.stdout
 
 
 def test_tuning_on_a_gpu_is_refused_with_what_to_do(tmp_path):
-    run = _mat("train", *TINY, "--tune", "--device", "cuda", "--out", str(tmp_path), check=False)
+    run = mat("train", *TINY, "--tune", "--device", "cuda", "--out", str(tmp_path), check=False)
     assert run.returncode == 1 and "--tune measures CPU update settings" in run.stderr
     assert "drop it on CUDA" in run.stderr
