@@ -28,6 +28,7 @@ def test_long_cpu_runs_tune_unless_told_and_the_given_settings_stay():
     assert not wanted(None, TUNE_FROM_STEPS, on_cpu=True, fixed=dict.fromkeys(TUNED, 0))
     assert not wanted(False, TUNE_FROM_STEPS, on_cpu=True, fixed={})
     assert wanted(True, 1, on_cpu=True, fixed={})
+    assert not wanted(True, 1, on_cpu=True, fixed=dict.fromkeys(TUNED, 0))  # nothing to choose
     with pytest.raises(ValueError, match="--tune measures CPU update settings"):
         wanted(True, TUNE_FROM_STEPS, on_cpu=False, fixed={})
 

@@ -45,8 +45,10 @@ TUNING_NAME = "tuning.json"
 def wanted(tune: bool | None, steps: int, on_cpu: bool, fixed: dict) -> bool:
     """Whether a run measures its update settings: as asked (`tune`), else when it is a long
     CPU run that leaves one of them to us; ValueError for `tune` on a GPU."""
+    if len(fixed) == len(TUNED):  # nothing left to choose
+        return False
     if tune is None:
-        return on_cpu and steps >= TUNE_FROM_STEPS and len(fixed) < len(TUNED)
+        return on_cpu and steps >= TUNE_FROM_STEPS
     if tune and not on_cpu:
         raise ValueError("--tune measures CPU update settings; drop it on CUDA")
     return tune
@@ -115,6 +117,7 @@ class _Measurements:
                 epoch()  # (`compare` runs two more before it measures)
             epochs[_label(settings)] = epoch
         per_epoch = compare(epochs, seconds=0.0, rounds=rounds)  # one epoch per round
+        self.close()
         steps = len(self.minibatches)
         chosen = candidates[0]
         for settings in candidates:
@@ -127,6 +130,7 @@ class _Measurements:
     def close(self) -> None:
         for copied in self.twins:
             copied.gradients.close()
+        self.twins = []
 
 
 def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tuple[dict, list[dict]]:
@@ -190,7 +194,10 @@ def tuned_settings(
         "torch.compile, subnormal flushing (about a minute or two; --no-tune skips it)"
     )
     chosen, table = measure(config, fixed, free_cores)
-    print_table(table, "update settings measured (ms per optimizer step)")
+    if table:
+        print_table(table, "update settings measured (ms per optimizer step)")
+    else:  # e.g. only the update workers left open, and no core to give them
+        echo("nothing left to measure here: no core is free for an update worker")
     echo(f"chosen: {_label({**fixed, **chosen})}")
     out.mkdir(parents=True, exist_ok=True)
     record = {"chosen": chosen, "fixed": fixed, "measured": table}
