@@ -471,6 +471,10 @@ def train(
     from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
 
     env_id = env_ids[0]
+    if ray_address is not None:  # before any measurement or seed starts
+        from mat_sdk.ray_rollouts import require_ray
+
+        require_ray()
     if eval_every is None:
         eval_every = steps // 20 if steps >= 100_000 else 0
     if seeds is not None:

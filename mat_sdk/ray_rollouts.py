@@ -62,13 +62,19 @@ class RolloutWorker:
         return self.collector.collect(update_norm=True, keep_raw=True)
 
 
+def require_ray() -> None:
+    """RuntimeError saying how to install Ray, where it is not (before any work starts)."""
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        raise RuntimeError("--ray needs Ray: pip install 'mat-sdk[ray]'") from None
+
+
 def connect(address: str, cpus: int = 0) -> bool:
     """Join the Ray cluster at `address`, or start a Ray instance here ("local": at least
     `cpus` CPUs, however many cores there are); True when this call started Ray."""
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("--ray needs Ray: pip install 'mat-sdk[ray]'") from None
+    require_ray()
+    import ray
 
     if ray.is_initialized():
         return False

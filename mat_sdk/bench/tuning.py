@@ -145,6 +145,7 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
     trainer = Trainer(config["env"], config["algo"], **options)
     measurements = None
     try:
+        trainer.config.check_batching()  # as the run would refuse it, before any work
         trajectories, _ = trainer.rollout()
         batch = RolloutCollector.rows(trajectories, trainer.config.advantage_std_floor)
         rows = batch["obs"].shape[0]
