@@ -8,6 +8,7 @@ from helpers import mat
 
 from mat_sdk import checkpoint
 from mat_sdk.bench.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
+from mat_sdk.processes import usable_cores
 
 # a run of seconds; compile stays off (given), so only update workers and flushing are measured
 TINY = [
@@ -40,7 +41,14 @@ def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
     chosen = record["chosen"]
     assert set(chosen) == {"update_workers", "flush_denormal"}  # compile was given
     assert record["fixed"] == {"compile": False}
-    assert len(record["measured"]) >= 2  # the candidates, each with its time
+    rounds = {row["round"] for row in record["measured"]}  # workers (a core free), flushing
+    assert len(rounds) == (2 if usable_cores() > 1 else 1)
+    for round_ in rounds:  # one winner per round, among candidates measured side by side
+        assert [row["chosen"] for row in record["measured"] if row["round"] == round_].count(
+            "yes"
+        ) == 1
+    last = [row for row in record["measured"] if row["round"] == max(rounds) and row["chosen"]]
+    assert f"flush_denormal={json.dumps(chosen['flush_denormal'])}" in last[0]["candidate"]
     train = checkpoint.load(tmp_path / "tuned" / "checkpoint.pt")["config"]["train"]
     assert {name: train[name] for name in chosen} == chosen and train["compile"] is False
 

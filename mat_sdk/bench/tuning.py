@@ -95,11 +95,11 @@ def _label(settings: dict) -> str:
 
 
 class _Measurements:
-    """Candidates measured so far: settings -> seconds per optimizer step."""
+    """The rounds of choice so far, each a table of its candidates."""
 
     def __init__(self, trainer: Trainer, batch, minibatches):
         self.trainer, self.batch, self.minibatches = trainer, batch, minibatches
-        self.seconds: dict[str, float] = {}
+        self.table: list[dict] = []
         self.twins: list[Trainer] = []
 
     def race(self, candidates: list[dict], rounds: int) -> dict:
@@ -118,13 +118,22 @@ class _Measurements:
             epochs[_label(settings)] = epoch
         per_epoch = compare(epochs, seconds=0.0, rounds=rounds)  # one epoch per round
         self.close()
-        steps = len(self.minibatches)
+        seconds = {label: epoch_s / len(self.minibatches) for label, epoch_s in per_epoch.items()}
         chosen = candidates[0]
         for settings in candidates:
-            label = _label(settings)
-            self.seconds[label] = per_epoch[label] / steps
-            if self.seconds[label] < (1 - MARGIN) * self.seconds[_label(chosen)]:
+            if seconds[_label(settings)] < (1 - MARGIN) * seconds[_label(chosen)]:
                 chosen = settings
+        fastest, round_ = min(seconds.values()), len({row["round"] for row in self.table}) + 1
+        self.table += [
+            {
+                "round": round_,
+                "candidate": label,
+                "ms / optimizer step": f"{value * 1e3:.2f}",
+                "vs fastest of the round": f"{value / fastest:.2f}x",
+                "chosen": "yes" if label == _label(chosen) else "",
+            }
+            for label, value in seconds.items()
+        ]
         return chosen
 
     def close(self) -> None:
@@ -137,7 +146,8 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
     """Choose `TUNED` settings for a run of `config` (Trainer options, `env` and `algo`
     included) on this machine; `fixed`: the ones the user set, kept as given; `free_cores`:
     cores the run's update may use beyond its own. -> (the chosen settings, a table of every
-    candidate measured)."""
+    candidate measured, round by round: each round's figures are comparable among
+    themselves)."""
     defaults = {name: getattr(TrainConfig, name) for name in TUNED}
     base = {**defaults, **fixed}
     options = {k: v for k, v in config.items() if k not in ("env", "algo", *TUNED)}
@@ -161,17 +171,7 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
         for name in ("compile", "flush_denormal"):
             if name not in fixed:
                 chosen = measurements.race([chosen, {**chosen, name: not chosen[name]}], rounds)
-        fastest = min(measurements.seconds.values(), default=None)
-        table = [
-            {
-                "candidate": label,
-                "ms / optimizer step": f"{seconds * 1e3:.2f}",
-                "vs fastest": f"{seconds / fastest:.2f}x",
-                "chosen": "yes" if label == _label(chosen) else "",
-            }
-            for label, seconds in measurements.seconds.items()
-        ]
-        return {name: chosen[name] for name in TUNED if name not in fixed}, table
+        return {name: chosen[name] for name in TUNED if name not in fixed}, measurements.table
     finally:
         if measurements is not None:
             measurements.close()
@@ -196,7 +196,7 @@ def tuned_settings(
     )
     chosen, table = measure(config, fixed, free_cores)
     if table:
-        print_table(table, "update settings measured (ms per optimizer step)")
+        print_table(table, "update settings measured, round by round")
     else:  # e.g. only the update workers left open, and no core to give them
         echo("nothing left to measure here: no core is free for an update worker")
     echo(f"chosen: {_label({**fixed, **chosen})}")
