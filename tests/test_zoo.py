@@ -48,7 +48,8 @@ def test_a_zoo_bundle_serves_without_torch(name):
         "import numpy as np\n"
         "from mat_runtime import Policy\n"
         f"policy = Policy.load('zoo:{name}')\n"
-        "for n in (2, 5, 9):\n"
+        "counts = (2, 5, 9) if policy.max_agents is None else (policy.max_agents,)  # MAPPO\n"
+        "for n in counts:\n"
         "    assert policy.act(np.zeros((n, policy.obs_dim))).shape == (n, policy.action_size)\n"
         "print(policy.env_id)\n"
     )
