@@ -482,20 +482,7 @@ def train(
         return
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
     ckpt = out / CHECKPOINT_NAME
-    asked = {
-        "env": env_id,
-        "algo": algo,
-        "num_envs": num_envs,
-        "workers": workers,
-        "update_workers": update_workers,
-        "seed": seed,
-        "device": device,
-        "faults": parse_faults(faults),
-        "ray": ray_address,
-        **parse_settings(settings, TRAIN_OPTIONS),
-    }
-    if len(env_ids) > 1:  # one policy on several counts of a family, updates in turn
-        asked["more_envs"] = list(env_ids[1:])
+    asked = _train_options(click.get_current_context().params)
     if resume:
         if not ckpt.exists():
             raise FileNotFoundError(f"nothing to resume: {ckpt} does not exist")
@@ -543,6 +530,23 @@ def train(
                 )
     click.echo(f"checkpoint: {ckpt}")
     click.echo(f"metrics:    {out / 'metrics.csv'}   curve: {out / 'learning_curve.png'}")
+
+
+def _train_options(params: dict) -> dict:
+    """`mat train`'s command line as `Trainer` options (`env` and `algo` included)."""
+    env_ids = params["env_ids"]
+    asked = {
+        "env": env_ids[0],
+        "algo": params["algo"],
+        **{name: params[name] for name in ("num_envs", "workers", "update_workers", "seed")},
+        "device": params["device"],
+        "faults": parse_faults(params["faults"]),
+        "ray": params["ray_address"],
+        **parse_settings(params["settings"], TRAIN_OPTIONS),
+    }
+    if len(env_ids) > 1:  # one policy on several counts of a family, updates in turn
+        asked["more_envs"] = list(env_ids[1:])
+    return asked
 
 
 def _tuned(context: click.Context, asked: dict, out: Path, tune: bool | None, free_cores: int):
@@ -611,11 +615,7 @@ def _train_seeds(
         )
     chosen = parse_seeds(seeds)
     out = Path(out_dir or f"runs/{env_ids[0].replace(':', '_')}-{params['algo']}")
-    asked = {"env": env_ids[0], "algo": params["algo"], "faults": parse_faults(params["faults"]),
-             **{name: params[name] for name in ("num_envs", "workers", "update_workers", "device")},
-             **parse_settings(params["settings"], TRAIN_OPTIONS)}  # fmt: skip
-    if len(env_ids) > 1:
-        asked["more_envs"] = list(env_ids[1:])
+    asked = _train_options(params)
     # tuned so that no seed waits for a core: each keeps its share of them
     share = usable_cores() // min(len(chosen), usable_cores())
     tuned = _tuned(context, asked, out, tune, free_cores=share - 1 - params["workers"])

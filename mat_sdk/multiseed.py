@@ -77,7 +77,7 @@ class _LocalSeed:
         self.process = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
 
     def poll(self) -> tuple[int, str] | None:
-        """None while it runs, then (exit status, what went wrong or "")."""
+        """None while it runs, then (exit status, how it ended)."""
         code = self.process.poll()
         if code is None:
             return None

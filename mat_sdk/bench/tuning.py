@@ -76,16 +76,14 @@ def twin(
     return copied
 
 
-def _epoch(trainer: Trainer, batch, minibatches, flush: bool) -> Callable[[], None]:
-    """One pass over the minibatches with this process's subnormal mode set to `flush`."""
+def _epoch(trainer: Trainer, batch, minibatches) -> Callable[[], None]:
+    """One pass over the minibatches, this process's subnormal mode set as the trainer's
+    config has it (the mode is process-wide, and the candidates take turns)."""
 
     def run() -> None:
-        torch.set_flush_denormal(flush)
-        try:
-            for idx in minibatches:
-                trainer.optimizer_step(batch, idx)
-        finally:
-            torch.set_flush_denormal(trainer.config.flush_denormal)
+        torch.set_flush_denormal(trainer.config.flush_denormal)
+        for idx in minibatches:
+            trainer.optimizer_step(batch, idx)
 
     return run
 
@@ -108,11 +106,10 @@ class _Measurements:
         epochs = {}
         for settings in candidates:
             compile_mode = "default" if settings["compile"] else None
-            flush = settings["flush_denormal"]
             copied = twin(self.trainer, self.batch, settings["update_workers"], compile_mode,
-                          flush_denormal=flush)  # fmt: skip
+                          flush_denormal=settings["flush_denormal"])  # fmt: skip
             self.twins.append(copied)
-            epoch = _epoch(copied, self.batch, self.minibatches, flush)
+            epoch = _epoch(copied, self.batch, self.minibatches)
             for _ in range(WARMUP_EPOCHS):  # compiles, starts the workers, makes subnormals
                 epoch()  # (`compare` runs two more before it measures)
             epochs[_label(settings)] = epoch
