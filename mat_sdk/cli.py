@@ -550,10 +550,10 @@ def _train_options(params: dict) -> dict:
 
 
 def _tuned(context: click.Context, asked: dict, out: Path, tune: bool | None, free_cores: int):
-    """The update settings measured fastest on this machine (`mat_sdk.bench.tuning`), for
+    """The update settings measured fastest on this machine (`mat_sdk.tuning`), for
     a run that asks for them (`--tune`) or a long CPU run by default; those the command line
     gives stay as given. -> {field: value} to train with ({} when not tuning)."""
-    from mat_sdk.bench.tuning import TUNED, tuned_settings, wanted
+    from mat_sdk.tuning import TUNED, tuned_settings, wanted
 
     given = _given_on_the_command_line(context, asked)
     fixed = {name: given[name] for name in TUNED if name in given}

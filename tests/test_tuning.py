@@ -7,8 +7,8 @@ import torch
 from helpers import mat
 
 from mat_sdk import checkpoint
-from mat_sdk.bench.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
 from mat_sdk.processes import usable_cores
+from mat_sdk.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
 
 # a run of seconds; compile stays off (given), so only update workers and flushing are measured
 TINY = [

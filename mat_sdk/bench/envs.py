@@ -7,8 +7,8 @@ import multiprocessing as mp
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.bench import compare, print_table
 from mat_sdk.processes import usable_cores
+from mat_sdk.timing import compare, print_table
 
 ROBOTS = (
     "cheetah-6x1",

@@ -25,8 +25,9 @@ import torch
 from mat_export.exporter import decode_with_ort, export
 from mat_runtime import Policy
 from mat_runtime.policy import session
-from mat_sdk.bench import machine, print_table
+from mat_sdk.bench import machine
 from mat_sdk.bench.reference import OfficialStyleMAT
+from mat_sdk.timing import print_table
 from mat_sdk.trainer import Trainer
 
 SIZES = {

@@ -13,7 +13,8 @@ import time
 
 import numpy as np
 
-from mat_sdk.bench import machine, print_table
+from mat_sdk.bench import machine
+from mat_sdk.timing import print_table
 from mat_sdk.trainer import Trainer
 
 

@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.bench import machine, print_table
+from mat_sdk.bench import machine
 from mat_sdk.processes import usable_cores
+from mat_sdk.timing import print_table
 
 # PPO settings under which MAT solves `coordination-3` in a few thousand steps, on every seed
 # swept. Once the game is solved the advantages are the critic's noise: the std floor keeps

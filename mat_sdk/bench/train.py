@@ -13,13 +13,13 @@ from functools import partial
 
 import torch
 
-from mat_sdk.bench import compare, print_table
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
-from mat_sdk.bench.tuning import twin
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.processes import usable_cores
 from mat_sdk.rollout import RolloutCollector
+from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
+from mat_sdk.tuning import twin
 
 
 def _reference_step(trainer: Trainer, batch: dict[str, torch.Tensor]):

@@ -26,12 +26,12 @@ from typing import Any
 
 import torch
 
-from mat_sdk.bench import compare, print_table
 from mat_sdk.checkpoint import write_text_atomic
 from mat_sdk.config import TrainConfig
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.rollout import RolloutCollector
+from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
 
 TUNED = ("update_workers", "compile", "flush_denormal")
