@@ -26,6 +26,8 @@ EVALUATIONS_NAME = "evaluations.json"
 BEST_NAME = "best.pt"
 ABSOLUTE_FACTOR = 10  # the absolute metric's episodes per evaluation episode
 BUILT_IN = "mat_sdk"  # the env name of our own ids (`cheetah-6x1`), as marl-eval wants one
+BOOTSTRAP_REPS = 2000  # rliable's default is 50,000; 2,000 keeps a report to seconds
+CONFIDENCE = 0.95
 
 
 def env_and_task(env_id: str) -> tuple[str, str]:
@@ -125,3 +127,21 @@ def read_evaluations(paths: list[Path]) -> dict[str, Any]:
                             seed
                         ] = run
     return merged
+
+
+def interval_estimates(
+    scores: dict[str, Any], aggregate, confidence: float = CONFIDENCE, seed: int = 0
+) -> tuple[dict, dict]:
+    """rliable's point estimates and stratified-bootstrap CIs of `aggregate` over seeds:
+    `scores` maps a name to [seeds, tasks] scores (or a tuple of such for a pairwise
+    aggregate). The same resampling everywhere we report a CI; needs `mat-sdk[report]`."""
+    import warnings
+
+    from rliable import library as rly
+
+    # arch (rliable's bootstrap) warns that RandomState is deprecated, which rliable passes
+    warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
+    return rly.get_interval_estimates(
+        scores, aggregate, reps=BOOTSTRAP_REPS, confidence_interval_size=confidence,
+        random_state=np.random.RandomState(seed),
+    )  # fmt: skip

@@ -16,10 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from mat_sdk.protocol import read_evaluations
-
-BOOTSTRAP_REPS = 2000  # rliable's default is 50,000; 2,000 keeps a report to seconds
-CONFIDENCE = 0.95
+from mat_sdk.protocol import BOOTSTRAP_REPS, CONFIDENCE, interval_estimates, read_evaluations
 
 
 def _final(run: dict[str, Any]) -> tuple[float, str]:
@@ -58,15 +55,10 @@ def _iqm_per_evaluation(scores: np.ndarray) -> np.ndarray:
 
 def write_report(paths: list[Path], out: Path) -> str:
     """Write `out`/report.md and the curves; returns the Markdown."""
-    import warnings
-
     import matplotlib
 
     matplotlib.use("Agg")
-    # arch (rliable's bootstrap) warns that RandomState is deprecated, which rliable passes
-    warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
     import matplotlib.pyplot as plt
-    from rliable import library as rly
     from rliable import metrics
 
     data = read_evaluations(paths)
@@ -79,7 +71,6 @@ def write_report(paths: list[Path], out: Path) -> str:
         "metric (its best evaluated policy on 10x the episodes) where it has one, else its "
         "last evaluation.",
     ]
-    rng = np.random.RandomState(0)  # what rliable's bootstrap (arch) takes
     for env, tasks in sorted(data.items()):
         for task, algos in sorted(tasks.items()):
             scores, kinds, curves = {}, {}, {}
@@ -88,10 +79,7 @@ def write_report(paths: list[Path], out: Path) -> str:
                 scores[algo] = np.array([[score] for score, _ in finals])  # [seeds, 1 task]
                 kinds[algo] = sorted({kind for _, kind in finals})
                 curves[algo] = _curve(list(seeds.values()))
-            point, interval = rly.get_interval_estimates(
-                scores, _iqm_and_mean, reps=BOOTSTRAP_REPS, confidence_interval_size=CONFIDENCE,
-                random_state=rng,
-            )  # fmt: skip
+            point, interval = interval_estimates(scores, _iqm_and_mean)
             lines += ["", f"## {env}: {task}", "",
                       "| algorithm | seeds | IQM [95 % CI] | mean [95 % CI] | score |",
                       "|---|---|---|---|---|"]  # fmt: skip
@@ -104,10 +92,9 @@ def write_report(paths: list[Path], out: Path) -> str:
             pairs = list(itertools.permutations(scores, 2))
             if pairs:
                 pair_scores = {f"{x} > {y}": (scores[x], scores[y]) for x, y in pairs}
-                improve, improve_ci = rly.get_interval_estimates(
-                    pair_scores, metrics.probability_of_improvement, reps=BOOTSTRAP_REPS,
-                    confidence_interval_size=CONFIDENCE, random_state=rng,
-                )  # fmt: skip
+                improve, improve_ci = interval_estimates(
+                    pair_scores, metrics.probability_of_improvement
+                )
                 lines += ["", "| probability of improvement | P [95 % CI] |", "|---|---|"]
                 for pair in pair_scores:
                     low, high = np.ravel(improve_ci[pair])[:2]
@@ -118,9 +105,7 @@ def write_report(paths: list[Path], out: Path) -> str:
                 if not len(steps):
                     continue
                 per_step = {algo: values[:, None, :]}  # [seeds, 1 task, evaluations]
-                centre, band = rly.get_interval_estimates(
-                    per_step, _iqm_per_evaluation, reps=BOOTSTRAP_REPS, random_state=rng
-                )
+                centre, band = interval_estimates(per_step, _iqm_per_evaluation)
                 (line,) = axis.plot(steps, centre[algo], label=f"{algo} ({len(values)} seeds)")
                 axis.fill_between(steps, band[algo][0], band[algo][1], alpha=0.2,
                                   color=line.get_color())  # fmt: skip
