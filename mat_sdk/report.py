@@ -4,7 +4,9 @@ From every `evaluations.json` under the given directories (`mat_sdk.protocol`), 
 the interquartile mean (IQM) and the mean over seeds, each with a 95 % stratified-bootstrap
 confidence interval (rliable, Agarwal et al. 2021), of each seed's absolute metric (or its
 last evaluation, for runs without one); sample-efficiency curves (IQM over seeds at each
-evaluation, with its CI band); and the probability that one algorithm improves on another.
+evaluation, with its CI band); the env steps at which each algorithm's curve reaches each
+other's final value, read off the plotted curve itself (so a crossing quoted in docs uses the
+figure's own smoothing); and the probability that one algorithm improves on another.
 Writes DIR/report.md and one PNG of curves per task.
 """
 
@@ -51,6 +53,19 @@ def _iqm_per_evaluation(scores: np.ndarray) -> np.ndarray:
     from rliable import metrics
 
     return np.array([metrics.aggregate_iqm(scores[..., i]) for i in range(scores.shape[-1])])
+
+
+def _reaching(centres: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[str]:
+    """Sample efficiency off the plotted IQM curves: the first evaluation at which each
+    algorithm's curve reaches the last point of each other algorithm's."""
+    lines = ["", "| IQM curve of | reaches the final IQM of | at env steps |", "|---|---|---|"]
+    for x, y in itertools.permutations(centres, 2):
+        steps, curve = centres[x]
+        target = centres[y][1][-1]
+        reached = np.flatnonzero(curve >= target)
+        at = f"{steps[reached[0]]:,}" if reached.size else f"not by {steps[-1]:,}"
+        lines.append(f"| {x} | {y} ({target:.1f}) | {at} |")
+    return lines
 
 
 def write_report(paths: list[Path], out: Path) -> str:
@@ -101,14 +116,18 @@ def write_report(paths: list[Path], out: Path) -> str:
                     lines.append(f"| {pair} | {float(np.ravel(improve[pair])[0]):.2f} "
                                  f"[{low:.2f}, {high:.2f}] |")  # fmt: skip
             figure, axis = plt.subplots(figsize=(6.5, 4))
+            centres = {}
             for algo, (steps, values) in curves.items():
                 if not len(steps):
                     continue
                 per_step = {algo: values[:, None, :]}  # [seeds, 1 task, evaluations]
                 centre, band = interval_estimates(per_step, _iqm_per_evaluation)
+                centres[algo] = (steps, centre[algo])
                 (line,) = axis.plot(steps, centre[algo], label=f"{algo} ({len(values)} seeds)")
                 axis.fill_between(steps, band[algo][0], band[algo][1], alpha=0.2,
                                   color=line.get_color())  # fmt: skip
+            if len(centres) > 1:
+                lines += _reaching(centres)
             axis.set_xlabel("env steps")
             axis.set_ylabel("return (IQM over seeds, 95 % CI)")
             axis.set_title(f"{env}: {task}")

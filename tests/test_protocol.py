@@ -89,6 +89,9 @@ def test_the_report_gives_intervals_curves_and_the_probability_of_improvement(tm
     iqm, low, high = (float(x) for x in re.findall(r"-?\d+\.\d+", row)[:3])
     assert low <= iqm <= high and 9 < iqm < 11
     assert "| mat > mappo | 1.00 [1.00, 1.00] |" in text  # every MAT seed beats every MAPPO one
+    # read off the curves: MAT's ~6.7 at step 2000 is the first to pass MAPPO's final ~5
+    assert re.search(r"\| mat \| mappo \(\d\.\d\) \| 2,000 \|", text), text
+    assert re.search(r"\| mappo \| mat \(\d+\.\d\) \| not by 3,000 \|", text), text
     assert (tmp_path / "r" / "mamujoco_Ant-4x2.png").stat().st_size > 1000
 
 
