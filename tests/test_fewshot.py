@@ -1,6 +1,8 @@
 """The few-shot experiment's table: one seed as before, several seeds with CIs over seeds."""
 
 import csv
+import subprocess
+import sys
 
 import pytest
 
@@ -45,3 +47,13 @@ def test_several_seeds_give_the_mean_over_seeds_with_its_interval(tmp_path):
     assert mean == "2000" and 1000 <= low < 2000 < high <= 3000
     assert scratch == "900 [900, 900]"
     assert (tmp_path / "fewshot.png").stat().st_size > 0
+
+
+def test_report_without_results_says_to_run_the_experiment_first(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "mat_sdk.bench.fewshot", "zoo:halfcheetah-6x1-mat",
+         "--out", str(tmp_path), "--report"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert "no results in" in out.stderr and "run without --report" in out.stderr

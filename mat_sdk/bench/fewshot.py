@@ -139,6 +139,8 @@ def main() -> None:
     pretrained = checkpoints.load(args.checkpoint)
     env_id = pretrained["config"]["train"]["env"]
     if args.report:
+        if not (args.out / "fewshot.csv").exists():
+            parser.error(f"--report: no results in {args.out}/fewshot.csv; run without --report")
         report(args.out / "fewshot.csv", args.out / "fewshot.png", env_id)
         return
 
