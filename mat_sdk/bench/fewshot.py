@@ -136,18 +136,18 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("docs/fewshot"))
     parser.add_argument("--report", action="store_true", help="Only print the table and plot.")
     args = parser.parse_args()
+    table = args.out / "fewshot.csv"
+    if args.report and not table.exists():
+        parser.error(f"--report: no results in {table}; run without --report")
     pretrained = checkpoints.load(args.checkpoint)
     env_id = pretrained["config"]["train"]["env"]
     if args.report:
-        if not (args.out / "fewshot.csv").exists():
-            parser.error(f"--report: no results in {args.out}/fewshot.csv; run without --report")
-        report(args.out / "fewshot.csv", args.out / "fewshot.png", env_id)
+        report(table, args.out / "fewshot.png", env_id)
         return
 
     reference_steps = args.of or pretrained["progress"]["steps"]
     budget_steps = {round(b * reference_steps): b for b in args.budgets}
     args.out.mkdir(parents=True, exist_ok=True)
-    table = args.out / "fewshot.csv"
     done = set()
     if table.exists():
         old = _read(table)
