@@ -342,7 +342,12 @@ def _manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "high": env.get("action_high", 1.0),
             "token_size": token,
         },
-        "model": {"n_embd": cfg.n_embd, "n_head": cfg.n_head, "n_block": cfg.n_block},
+        "model": {
+            "n_embd": cfg.n_embd,
+            "n_head": cfg.n_head,
+            "n_block": cfg.n_block,
+            "attention_window": cfg.attention_window,
+        },
         "opset": OPSET,
         "agents": {
             "min": cfg.n_agents if cfg.algo == "mappo" else 1,

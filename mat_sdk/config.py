@@ -77,6 +77,9 @@ class TrainConfig:
     n_embd: int = 64
     n_head: int = 1
     n_block: int = 1
+    # MAT: attend only to agents fewer than this many places away (None: all; the paper's).
+    # Linear cost in the agent count instead of quadratic (docs/ARCHITECTURE.md).
+    attention_window: int | None = None
     shuffle_agents: bool = False  # the paper shuffles the order; the official code does not
     normalize_obs: bool = True
     checkpoint_every: int = 10  # updates
@@ -125,6 +128,13 @@ class TrainConfig:
                 isinstance(value, list) and all(isinstance(v, str) for v in value)
             ):
                 raise ValueError(f"{f.name} must be a list of strings, got {value!r}")
+        window = self.attention_window
+        if window is not None and not (
+            isinstance(window, numbers.Integral) and not isinstance(window, bool) and window >= 2
+        ):
+            raise ValueError(f"attention_window must be an integer >= 2 or null, got {window!r}")
+        if window is not None:
+            self.attention_window = int(window)
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "
@@ -209,6 +219,7 @@ class TrainConfig:
             n_embd=self.n_embd,
             n_head=self.n_head,
             n_block=self.n_block,
+            attention_window=self.attention_window,
         )
 
     @classmethod

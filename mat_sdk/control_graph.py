@@ -14,7 +14,9 @@ into the output one — see `_stream_queries`), with several it caches per-head 
 (`_streamed`); ONNX's `Attention` op (opset 24) either way; everything that does not depend on
 the actions already chosen (the second attention's queries, noise times std, the mask) is
 computed for all agents before the agent steps, and the agents' action means after them.
-About 20 kernels per agent remain. The steps run in ONNX `Loop`s (any agent count) or are
+About 20 kernels per agent remain. With an `attention_window` W the encoder attends over
+gathered neighbours (`_banded_attention`) and each agent step keeps the last W cache entries,
+so the step costs O(n W). The steps run in ONNX `Loop`s (any agent count) or are
 written out for one count (`agents=N`: `decode_nN.onnx`, no loop machinery). Only standard
 ONNX ops. BENCHMARKS.md has the measurements.
 
@@ -203,10 +205,44 @@ def _encoder(g: GraphBuilder, x: str, cfg, value_fold: dict) -> tuple[str, str]:
     for b in range(cfg.n_block):
         block = f"encoder.blocks.{b}"
         q, k, v = g.qkv(x, f"{block}.attn", ("query", "key", "value"))
-        attended = g.op("Attention", q, k, v, q_num_heads=cfg.n_head, kv_num_heads=cfg.n_head)
+        if cfg.attention_window is None:
+            attended = g.op("Attention", q, k, v, q_num_heads=cfg.n_head, kv_num_heads=cfg.n_head)
+        else:
+            attended = _banded_attention(g, q, k, v, cfg)
         x = g.layer_norm(g.op("Add", x, g.linear(attended, f"{block}.attn.proj")), f"{block}.ln1")
         x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln2")
     return x, _head(g, x, "encoder.head", **value_fold)
+
+
+def _banded_attention(g: GraphBuilder, q: str, k: str, v: str, cfg) -> str:
+    """Attention of every agent over the agents fewer than W = `cfg.attention_window` places
+    away, on [B, n, C] tensors, in O(n W) time and memory: each agent's 2 W - 1 neighbours'
+    keys and values are gathered ([B, n, 2 W - 1, C]; those past either end masked out), so
+    no [n, n] score matrix is ever formed."""
+    heads, window = cfg.n_head, cfg.attention_window
+    span = 2 * window - 1
+    count = g.op("Squeeze", g.op("Shape", q, start=1, end=2))
+    agents = g.op("Range", g.const(0, "zero_i", np.int64), count, g.const(1, "one_i", np.int64))
+    offsets = g.const(np.arange(-(window - 1), window), "offsets", np.int64)
+    neighbours = g.op("Add", g.op("Unsqueeze", agents, g.const([1], "axis1", np.int64)), offsets)
+    inside = g.op(
+        "And",
+        g.op("GreaterOrEqual", neighbours, g.const(0, "zero_i", np.int64)),
+        g.op("Less", neighbours, count),
+    )  # [n, span]
+    index = g.op("Where", inside, neighbours, g.const(0, "zero_i", np.int64))
+    outside = g.op("Where", inside, g.const(0.0, "zero"), g.const(-np.inf, "minus_inf"))
+    outside = g.op("Unsqueeze", outside, g.const([1, 2], "axes12", np.int64))  # [n, 1, 1, span]
+    split = g.const([0, 0, span, heads, -1], "split", np.int64)  # [B, n, span, H, d]
+    keys = g.op("Reshape", g.op("Gather", k, index, axis=1), split)
+    values = g.op("Reshape", g.op("Gather", v, index, axis=1), split)
+    query = g.op("Reshape", q, g.const([0, 0, heads, 1, -1], "query", np.int64))  # [B, n, H, 1, d]
+    scores = g.op("MatMul", query, g.op("Transpose", keys, perm=[0, 1, 3, 4, 2]))
+    scale = g.const(1 / np.sqrt(cfg.n_embd // heads), "scale")
+    scores = g.op("Add", g.op("Mul", scores, scale), outside)  # [B, n, H, 1, span]
+    weights = g.op("Softmax", scores, axis=-1)
+    mixed = g.op("MatMul", weights, g.op("Transpose", values, perm=[0, 1, 3, 2, 4]))
+    return g.op("Reshape", mixed, g.const([0, 0, -1], "merge", np.int64))  # [B, n, C]
 
 
 def _mlp_block(g: GraphBuilder, x: str, prefix: str) -> str:
@@ -501,8 +537,14 @@ def _attention(g: GraphBuilder, cfg, stream, attn, past, present, query=None) ->
     """One agent's decoder attention over the agents so far, its own entry `stream` [B, 1, C]
     included: the output projection of the mixed values. `query`: [B, 1, ..] precomputed
     (the second attention's), else projected from `stream`. `past` None: no agents before
-    (streamed only). Appends the caches to `present`."""
+    (streamed only). Appends the caches to `present`; with an `attention_window`, only the
+    last window - 1 agents of `past` are attended to, and kept."""
     heads = cfg.n_head
+    if past is not None and cfg.attention_window is not None:
+        keep = g.const([1 - cfg.attention_window], "keep", np.int64)
+        end = g.const([np.iinfo(np.int64).max], "end", np.int64)
+        axis = g.const([len(_cache_dims(cfg))], "cache_axis", np.int64)  # the agents' axis
+        past = [g.op("Slice", p, keep, end, axis) for p in past]
     if _streamed(cfg):
         if past is None:  # the first agent: attending to its own entry alone returns it
             present.append(stream)

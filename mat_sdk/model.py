@@ -9,6 +9,12 @@ encoder representation and its keys/values from the causal action stream.
 Rollouts decode with a KV cache (`decode_step`): each decoder block keeps two caches, one per
 attention that reads the action stream, so a control step costs O(n) decoder work.
 
+`attention_window` (None: the paper's full attention) lets every attention see only the agents
+fewer than W places away in the team's order (the decoder's: the W - 1 before an agent and
+itself). A whole control step then costs O(n W) instead of O(n^2), and its caches hold W
+entries, which is what serves a thousand agents in linear time and memory; on a chain robot it
+also makes an agent's view the same whatever the chain's length.
+
 MAT-Dec shares MAT's encoder/critic but acts with one shared MLP per agent on its own
 observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All three expose
 `evaluate` (teacher-forced, for PPO) and `act` (sampling, for rollouts).
@@ -56,12 +62,20 @@ class ModelConfig:
     n_embd: int = 64
     n_head: int = 1
     n_block: int = 1
+    attention_window: int | None = None  # None: full attention (the paper's)
 
     def __post_init__(self):
         for name in ("obs_dim", "action_size", "n_agents", "n_embd", "n_head", "n_block"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"model {name} must be an integer >= 1, got {value!r}")
+        window = self.attention_window
+        if window is not None and (
+            isinstance(window, bool) or not isinstance(window, int) or window < 2
+        ):
+            raise ValueError(
+                f"model attention_window must be an integer >= 2 or None, got {window!r}"
+            )
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r}; valid: {', '.join(ALGOS)}")
         if self.action_type not in ACTION_TYPES:
@@ -121,16 +135,27 @@ def head(n_embd: int, out: int) -> nn.Sequential:
 KV = tuple[Tensor, Tensor]
 
 
-class Attention(nn.Module):
-    """Multi-head attention; `causal` masks keys after each query's own position.
+def band(length: int, window: int, causal: bool, device=None) -> Tensor:
+    """[L, L] bool, True where query i may attend to key j: |i - j| < window (causal: and
+    j <= i)."""
+    index = torch.arange(length, device=device)
+    offset = index[:, None] - index[None, :]
+    allowed = offset.abs() < window
+    return allowed & (offset >= 0) if causal else allowed
 
-    With `past` (a cached step) the single new query sees every cached key plus its own, which
-    is exactly its causal row in the teacher-forced pass.
+
+class Attention(nn.Module):
+    """Multi-head attention; `causal` masks keys after each query's own position, `window`
+    (None: no limit) keys `window` or more places away.
+
+    With `past` (a cached step) the single new query sees every cached key plus its own (the
+    last `window` of them), which is exactly its row in the teacher-forced pass; the returned
+    cache keeps only those, so it never outgrows the window.
     """
 
-    def __init__(self, n_embd: int, n_head: int, causal: bool):
+    def __init__(self, n_embd: int, n_head: int, causal: bool, window: int | None = None):
         super().__init__()
-        self.n_head, self.causal = n_head, causal
+        self.n_head, self.causal, self.window = n_head, causal, window
         self.query = init_linear(nn.Linear(n_embd, n_embd))
         self.key = init_linear(nn.Linear(n_embd, n_embd))
         self.value = init_linear(nn.Linear(n_embd, n_embd))
@@ -146,18 +171,23 @@ class Attention(nn.Module):
             self._heads(self.key(stream)),
             self._heads(self.value(stream)),
         )
+        mask = None
         if past is not None:
             k, v = torch.cat((past[0], k), dim=2), torch.cat((past[1], v), dim=2)
-        causal = self.causal and past is None
-        y = F.scaled_dot_product_attention(q, k, v, is_causal=causal)
+            if self.window is not None:
+                k, v = k[:, :, -self.window :], v[:, :, -self.window :]
+        elif self.window is not None:
+            mask = band(q.shape[2], self.window, self.causal, q.device)
+        causal = self.causal and past is None and mask is None
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, is_causal=causal)
         batch, _, length, _ = y.shape
         return self.proj(y.transpose(1, 2).reshape(batch, length, -1)), (k, v)
 
 
 class EncodeBlock(nn.Module):
-    def __init__(self, n_embd: int, n_head: int):
+    def __init__(self, n_embd: int, n_head: int, window: int | None = None):
         super().__init__()
-        self.attn = Attention(n_embd, n_head, causal=False)
+        self.attn = Attention(n_embd, n_head, causal=False, window=window)
         self.ln1, self.ln2 = nn.LayerNorm(n_embd), nn.LayerNorm(n_embd)
         self.mlp = mlp_block(n_embd)
 
@@ -171,10 +201,10 @@ class DecodeBlock(nn.Module):
 
     Both attentions are causal over the action stream."""
 
-    def __init__(self, n_embd: int, n_head: int):
+    def __init__(self, n_embd: int, n_head: int, window: int | None = None):
         super().__init__()
-        self.attn1 = Attention(n_embd, n_head, causal=True)
-        self.attn2 = Attention(n_embd, n_head, causal=True)
+        self.attn1 = Attention(n_embd, n_head, causal=True, window=window)
+        self.attn2 = Attention(n_embd, n_head, causal=True, window=window)
         self.ln1, self.ln2, self.ln3 = (
             nn.LayerNorm(n_embd),
             nn.LayerNorm(n_embd),
@@ -202,7 +232,7 @@ class Encoder(nn.Module):
         )
         self.ln = nn.LayerNorm(cfg.n_embd)
         self.blocks = nn.Sequential(
-            *(EncodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block))
+            *(EncodeBlock(cfg.n_embd, cfg.n_head, cfg.attention_window) for _ in range(cfg.n_block))
         )
         self.head = head(cfg.n_embd, 1)
 
@@ -223,7 +253,9 @@ class Decoder(nn.Module):
             nn.GELU(),
         )
         self.ln = nn.LayerNorm(cfg.n_embd)
-        self.blocks = nn.ModuleList(DecodeBlock(cfg.n_embd, cfg.n_head) for _ in range(cfg.n_block))
+        self.blocks = nn.ModuleList(
+            DecodeBlock(cfg.n_embd, cfg.n_head, cfg.attention_window) for _ in range(cfg.n_block)
+        )
         self.head = head(cfg.n_embd, cfg.action_size)
 
     def forward(self, tokens: Tensor, rep: Tensor) -> Tensor:

@@ -292,7 +292,8 @@ class Trainer:
         payload = checkpoint.load(checkpoint_path)
         train = dict(payload["config"]["train"])
         model = payload["config"]["model"]
-        train.update(n_embd=model["n_embd"], n_head=model["n_head"], n_block=model["n_block"])
+        train.update({key: model[key] for key in ("n_embd", "n_head", "n_block")})
+        train["attention_window"] = model.get("attention_window")  # absent before windows
         train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), more_envs=[])
         train.update(options)
         if lr is not None:

@@ -252,6 +252,9 @@ def test_contradicting_options_are_refused_in_one_line(tmp_path):
             "shuffle_agents must be true or false, got 'maybe'"
         ),
         ("train", "hopper-2x2", "--seed", str(2**70)): "seed must be an integer in 0..2**31 - 1",
+        ("train", "hopper-2x2", "--set", "attention_window=0"): (
+            "attention_window must be an integer >= 2 or null, got 0"
+        ),
     }
     for args, message in cases.items():
         result = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "never")])

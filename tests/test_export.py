@@ -93,6 +93,18 @@ def test_one_head_discrete_and_baseline_policies_export(tmp_path, env_id, algo, 
         assert "available" in manifest["graphs"]["decoder_step.onnx"]["inputs"]
 
 
+@pytest.mark.parametrize(
+    ("env_id", "model"),
+    [("hopper-2x2", {}), ("coordination-3", {"n_head": 2, "n_block": 2})],  # stream, per-head
+)
+def test_windowed_attention_exports_at_parity_beyond_its_window(tmp_path, env_id, model):
+    checkpoint = make_checkpoint(tmp_path / "c.pt", env_id, attention_window=3, **model)
+    manifest = export(checkpoint, tmp_path / "bundle")
+    assert manifest["model"]["attention_window"] == 3
+    diffs = manifest["parity"]["max_abs_diff"]
+    assert {"17", "64"} <= set(diffs) and max(diffs.values()) <= 1e-5  # counts past 2 x 3
+
+
 def test_disagreement_refuses_and_leaves_nothing(mat_checkpoint, tmp_path, monkeypatch):
     monkeypatch.setattr(exporter_module, "PARITY_LIMIT", -1.0)
     with pytest.raises(ExportError, match="disagrees with torch"):

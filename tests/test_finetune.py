@@ -67,12 +67,13 @@ def test_mappo_refuses_a_different_agent_count(tmp_path):
 
 def test_a_swimmer_policy_finetunes_on_a_longer_swimmer(tmp_path):
     tiny = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
-    with Trainer("swimmer-4", "mat", **tiny) as trainer:
+    with Trainer("swimmer-4", "mat", attention_window=2, **tiny) as trainer:
         trainer.learn(20, progress_bar=False)
         path = trainer.save(tmp_path / "swimmer4.pt")
         weights = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
     with Trainer.from_pretrained(path, env="swimmer-6") as longer:
         assert longer.env.n_agents == 5 and longer.config.init_from == str(path)
+        assert longer.policy.cfg.attention_window == 2  # the model as trained
         for name, value in longer.policy.state_dict().items():  # same weights, more agents
             assert (value == weights[name]).all(), name
         longer.learn(20, progress_bar=False)

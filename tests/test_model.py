@@ -7,13 +7,15 @@ from helpers import trained_like
 from mat_sdk.model import MAT, ModelConfig, build_policy
 
 
+@pytest.mark.parametrize("window", [None, 3])
 @pytest.mark.parametrize("action_type", ["continuous", "discrete"])
 @pytest.mark.parametrize("n", [1, 2, 6, 17])
-def test_cached_decoding_equals_teacher_forcing(action_type, n):
+def test_cached_decoding_equals_teacher_forcing(action_type, n, window):
     torch.manual_seed(0)
     cfg = ModelConfig(
-        obs_dim=11, action_size=4, n_agents=n, action_type=action_type, n_block=2, n_head=2
-    )
+        obs_dim=11, action_size=4, n_agents=n, action_type=action_type, n_block=2, n_head=2,
+        attention_window=window,
+    )  # fmt: skip
     policy = trained_like(MAT(cfg))
     obs = torch.randn(5, n, 11)
     available = None
@@ -40,6 +42,28 @@ def test_later_agents_depend_on_earlier_actions_only():
     mean2, _ = policy.action_params(obs, changed)
     assert torch.allclose(mean[0, :3], mean2[0, :3], atol=1e-6)
     assert not torch.allclose(mean[0, 3], mean2[0, 3], atol=1e-6)
+
+
+def test_an_attention_window_limits_what_each_agent_sees():
+    torch.manual_seed(0)
+    cfg = ModelConfig(obs_dim=5, action_size=2, n_agents=9, attention_window=3)
+    policy = trained_like(MAT(cfg))
+    obs, actions = torch.randn(1, 9, 5), torch.randn(1, 9, 2)
+    changed = obs.clone()
+    changed[0, 4, 0] += 1.0  # one block: agents 2..6 (fewer than 3 places from agent 4) see it
+    rep, rep2 = policy.encoder(obs)[0], policy.encoder(changed)[0]
+    moved = (rep - rep2).abs().amax(-1)[0] > 1e-6
+    assert moved.tolist() == [False, False, True, True, True, True, True, False, False]
+    later = actions.clone()
+    later[0, 1] += 1.0  # agent 2's token; the decoder's two attentions reach 2 * (3 - 1) on
+    mean = policy.decoder(policy.shift_tokens(actions), rep)
+    mean2 = policy.decoder(policy.shift_tokens(later), rep)
+    moved = (mean - mean2).abs().amax(-1)[0] > 1e-6
+    assert moved.tolist() == [False, False, True, True, True, True, True, False, False]
+    full = trained_like(MAT(ModelConfig(obs_dim=5, action_size=2, n_agents=9)))
+    assert ((full.encoder(obs)[0] - full.encoder(changed)[0]).abs().amax(-1) > 1e-6).all()
+    with pytest.raises(ValueError, match="attention_window must be an integer >= 2"):
+        ModelConfig(obs_dim=5, action_size=2, n_agents=9, attention_window=1)
 
 
 @pytest.mark.parametrize("algo", ["mat", "mat-dec", "mappo"])

@@ -242,6 +242,8 @@ def test_bad_input_gives_clear_errors(tmp_path):
         ({"lr": float("nan")}, "lr must be a number > 0, got nan"),
         ({"lr": "1e-4"}, "lr must be a number > 0, got '1e-4'"),
         ({"device": "tpu"}, "device must be cpu, cuda, cuda:N or auto, got 'tpu'"),
+        ({"attention_window": 1}, "attention_window must be an integer >= 2 or null, got 1"),
+        ({"attention_window": 4.5}, "attention_window must be an integer >= 2 or null, got 4.5"),
     ):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**option)

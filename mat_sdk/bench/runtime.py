@@ -34,6 +34,12 @@ SIZES = {
     "1 block, 1 head": {"n_block": 1, "n_head": 1},
     "3 blocks, 4 heads": {"n_block": 3, "n_head": 4},
 }
+# Scaled to 1,024 agents beside SIZES: attention limited to the 8 nearest agents on each side
+# (`attention_window`), whose control step is linear in n where full attention's is not.
+WINDOWED = {
+    "1 block, 1 head, window 8": {"n_block": 1, "n_head": 1, "attention_window": 8},
+    "3 blocks, 4 heads, window 8": {"n_block": 3, "n_head": 4, "attention_window": 8},
+}
 AGENTS = (2, 6, 17, 64, 256)
 
 
@@ -189,7 +195,8 @@ def spinning(bundle: Path, obs_dim: int, seconds: float, n: int = 6) -> list[dic
 
 def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
     """The table of variants at `agent_counts`; with `scale`, the runtime alone at
-    n = 64, 256, 1024 (the other variants are O(n^2) or Python loops: minutes at 1,024)."""
+    n = 64, 256, 1024 (the other variants are O(n^2) or Python loops: minutes at 1,024), full
+    attention and windowed."""
     torch.set_num_threads(1)
     rows, scaling = [], []
     for label, model in SIZES.items():
@@ -216,21 +223,21 @@ def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
                         "(a) vs (d)": f"{p50['step graph'] / p50['runtime']:.1f}x",
                     }
                 )
-            if scale:
-                times = _scaling(bundle, policy.cfg.obs_dim, seconds)
-                for n, t in times.items():
-                    scaling.append(
-                        {
-                            "model": label,
-                            "agents": n,
-                            "runtime p50 (µs)": _us(t),
-                            "t(n) / t(n / 4)": f"{t / times[n // 4]:.2f}"
-                            if n // 4 in times
-                            else "",
-                            "memory added (MiB)": f"{memory_added_mib(bundle, n):.1f}",
-                        }
-                    )
     print_table(rows, f"One control step, one thread — {machine()}")
+    for label, model in {**SIZES, **WINDOWED}.items() if scale else {}.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle, policy = untrained_bundle(Path(tmp), **model)
+            times = _scaling(bundle, policy.cfg.obs_dim, seconds)
+            scaling += [
+                {
+                    "model": label,
+                    "agents": n,
+                    "runtime p50 (µs)": _us(t),
+                    "t(n) / t(n / 4)": f"{t / times[n // 4]:.2f}" if n // 4 in times else "",
+                    "memory added (MiB)": f"{memory_added_mib(bundle, n):.1f}",
+                }
+                for n, t in times.items()
+            ]
     with tempfile.TemporaryDirectory() as tmp:
         bundle, policy = untrained_bundle(Path(tmp), **SIZES["1 block, 1 head"])
         table = spinning(bundle, policy.cfg.obs_dim, seconds)
