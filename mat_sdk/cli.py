@@ -572,7 +572,8 @@ def _cuda() -> bool:
     return torch.cuda.is_available()
 
 
-FAMILY_IDENTITY = "ends"  # measured best of none / fraction / ends (docs/TRANSFER.md)
+# measured best of none / fraction / ends / near-ends / end-flags (docs/TRANSFER.md)
+FAMILY_IDENTITY = "end-flags"
 
 
 def _family_identity(env_id: str, options: dict) -> dict:
@@ -590,8 +591,9 @@ def _family_identity(env_id: str, options: dict) -> dict:
     if not team.variable_count:
         return options
     click.echo(
-        f"{env_id} is a family: agents observe position={FAMILY_IDENTITY!r} (closeness to each "
-        "end of the chain, docs/TRANSFER.md); --set 'env_options={\"position\": null}' for none"
+        f"{env_id} is a family: agents observe position={FAMILY_IDENTITY!r} (whether an agent "
+        "is at an end of the chain, docs/TRANSFER.md); --set 'env_options={\"position\": null}' "
+        "for none"
     )
     return {**options, "position": FAMILY_IDENTITY}
 

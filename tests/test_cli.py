@@ -76,6 +76,8 @@ def test_train_on_several_agent_counts_resume_and_eval_on_another(tmp_path):
     assert first.exit_code == 0, first.output
     train = checkpoint.load(out / "checkpoint.pt")["config"]["train"]
     assert (train["env"], train["more_envs"]) == ("swimmer-4", ["swimmer-5"])
+    assert "swimmer-4 is a family: agents observe position='end-flags'" in first.output
+    assert train["env_options"]["position"] == "end-flags"  # the measured best identity
     other = runner.invoke(main, ["train", "swimmer-4", "swimmer-7", "--out", str(out), "--resume"])
     assert other.exit_code != 0 and "more_envs=['swimmer-5']" in other.output
     resumed = runner.invoke(main, ["train", *ids, "--steps", "80", "--out", str(out), "--resume"])

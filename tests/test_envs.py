@@ -130,7 +130,7 @@ def test_one_hot_agent_id_and_swimmer_obs_size_independent_of_n():
 
 @pytest.mark.parametrize("family", ["swimmer-{}", "mamujoco:ManySegmentSwimmer-{}x2"])
 def test_count_independent_positions_keep_one_observation_size(family):
-    for position, width in (("fraction", 1), ("ends", 2)):
+    for position, width in (("fraction", 1), ("ends", 2), ("near-ends", 2), ("end-flags", 2)):
         teams = [envs.make_team(family.format(n), position=position) for n in (4, 7)]
         plain = envs.make_team(family.format(4)).obs_dim
         assert {t.obs_dim for t in teams} == {plain + width}
@@ -138,10 +138,14 @@ def test_count_independent_positions_keep_one_observation_size(family):
         count = teams[1].n_agents
         if position == "fraction":
             assert np.allclose(features[:, 0], np.linspace(0, 1, count))
-        else:
+        elif position == "ends":
             assert np.allclose(features[0], [1, 1 / count]) and np.allclose(
                 features[-1], [1 / count, 1]
             )
+        else:  # counted up to 2 or 1: the inside agents all look alike
+            inside = [1, 1] if position == "end-flags" else [0.5, 1]
+            assert features[[0, 1, -1]].tolist() == [[0, 1], inside, [1, 0]]
+            assert (features[2:-2] == 1).all()
     with pytest.raises(ValueError, match="position must be one of"):
         envs.make_team(family.format(4), position="middle")
 

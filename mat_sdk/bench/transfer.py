@@ -39,7 +39,13 @@ FAMILY = "mamujoco:ManySegmentSwimmer-{}x2"
 # The paper's MuJoCo recipe but lr 3e-4, 5 epochs (half the update cost) and gamma 0.999 (a
 # swimmer's reward is slow); picked before the experiment, not tuned against alternatives.
 RECIPE = {"lr": 3e-4, "ppo_epochs": 5, "gamma": 0.999}
-IDENTITIES = {"multi": None, "multi-fraction": "fraction", "multi-ends": "ends"}
+IDENTITIES = {
+    "multi": None,
+    "multi-fraction": "fraction",
+    "multi-ends": "ends",
+    "multi-near-ends": "near-ends",
+    "multi-end-flags": "end-flags",
+}
 FIELDS = ["cell", "seed", "count", "return_mean", "return_std"]
 # Teams to compare with: uniform random actions (the normalisation's 0), and zero actions (a
 # robot held still: on a walker that earns the alive bonus without any control cost)

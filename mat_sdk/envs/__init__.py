@@ -12,8 +12,9 @@ Ids and what they build: `registry.py`; your own robots: `sources.py`; PettingZo
 
 Options (keywords of `make`, `make_vec` and `make_team`):
     agent_id       append a one-hot agent id (default: on, except for variable-count families)
-    position       append a count-independent identity: "fraction" (i / (N - 1)) or "ends"
-                   (1 / (1 + i), 1 / (N - i)); robots and MaMuJoCo scenarios
+    position       append a count-independent identity: "fraction" (i / (N - 1)), "ends"
+                   (1 / (1 + i), 1 / (N - i)), "near-ends" (min(i, 2) / 2, min(N - 1 - i, 2)
+                   / 2) or "end-flags" (min(i, 1), min(N - 1 - i, 1)); robots and MaMuJoCo
     hops           neighbourhood radius in the kinematic tree (default 1)
     episode_limit  truncate episodes after this many steps (default: the suite's, 1000)
     task           another task of the same robot, e.g. task="run" for walker

@@ -22,9 +22,14 @@ def checked_episode_limit(given: int | None, default: int) -> int:
 
 
 # Count-independent identities: an agent's place in the team's order (a chain's head first),
-# as "fraction": i / (N - 1), or "ends": 1 / (1 + i) and 1 / (N - i), closeness to each end.
-# Unlike a one-hot id, neither changes the observation size with N.
-POSITIONS = ("fraction", "ends")
+# as "fraction": i / (N - 1); "ends": 1 / (1 + i) and 1 / (N - i), closeness to each end;
+# "near-ends": the agents before it and after it, each counted up to NEAR_ENDS and scaled to
+# 1; or "end-flags", the same counted up to 1: whether any agent is before it, and after it.
+# The last two make every agent farther inside look the same, in a long team as in a short
+# one (end-flags transferred best to unseen counts, docs/TRANSFER.md). Unlike a one-hot id,
+# none changes the observation size with N.
+POSITIONS = ("fraction", "ends", "near-ends", "end-flags")
+NEAR_ENDS = 2
 
 
 def position_features(position: str | None, count: int) -> np.ndarray:
@@ -36,6 +41,9 @@ def position_features(position: str | None, count: int) -> np.ndarray:
         return (index / max(count - 1, 1))[:, None]
     if position == "ends":
         return np.stack([1.0 / (1 + index), 1.0 / (count - index)], axis=1)
+    if position in ("near-ends", "end-flags"):
+        cap = NEAR_ENDS if position == "near-ends" else 1
+        return np.minimum(np.stack([index, count - 1 - index], axis=1), cap) / cap
     raise ValueError(f"position must be one of {POSITIONS} or None, got {position!r}")
 
 
