@@ -31,6 +31,7 @@ def bundles(tmp_path_factory):
     recipes = {
         "mat": ("hopper-2x2", "mat", {"n_block": 2, "n_head": 2}),
         "mat-discrete": ("coordination-3", "mat", {}),
+        "mat-window": ("hopper-2x2", "mat", {"attention_window": 3}),  # 17, 64: past it
         "mat-dec": ("hopper-2x2", "mat-dec", {}),
         "mappo": ("coordination-3", "mappo", {}),
     }
@@ -51,7 +52,7 @@ def _torch_actions(loaded: LoadedPolicy, obs: np.ndarray) -> np.ndarray:
     return loaded.act(obs[None] if obs.ndim == 2 else obs)
 
 
-@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-dec", "mappo"])
+@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-window", "mat-dec", "mappo"])
 def test_deterministic_actions_equal_the_torch_policy(bundles, name):
     ckpt, bundle = bundles[name]
     policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
