@@ -13,7 +13,7 @@ attention that reads the action stream, so a control step costs O(n) decoder wor
 fewer than W places away in the team's order (the decoder's: the W - 1 before an agent and
 itself). A whole control step then costs O(n W) instead of O(n^2), and its caches hold W
 entries, which is what serves a thousand agents in linear time and memory; on a chain robot it
-also makes an agent's view the same whatever the chain's length.
+also makes what an agent's encoding sees the same whatever the chain's length.
 
 MAT-Dec shares MAT's encoder/critic but acts with one shared MLP per agent on its own
 observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All three expose
