@@ -3,14 +3,15 @@
     mat train cheetah-6x1 --steps 20000 --out runs/demo      # any trained checkpoint
     mat export runs/demo/checkpoint.pt -o runs/demo/onnx
     python examples/controller.py runs/demo/onnx --rate 100 --seconds 10
-    python examples/controller.py runs/demo/onnx --rate 1000 --cpu 1 --fifo 80
+    python examples/controller.py runs/demo/onnx --rate 1000 --cpu 1 --fifo 80 --keep-awake
 
 The "robot" here is the dm_control simulation from `mat_sdk.envs` (MuJoCo, no torch); on
 hardware, replace `team.observe()` / `team.step()` with your sensor read and actuator write.
 Each tick builds the agents' observations from the raw joint state with the bundle's wiring
 (`Policy.describe()` prints it) and acts into preallocated arrays (`act(obs, out=...)`: no
 allocation per call), after a warm-up. `--cpu` pins the process to a core and `--fifo` asks
-for SCHED_FIFO (a note says so where the OS refuses). torch is blocked at start-up, so this
+for SCHED_FIFO (a note says so where the OS refuses); `--keep-awake` spins a SCHED_IDLE
+process on that core so it never idles between ticks. torch is blocked at start-up, so this
 script fails loudly if anything tries to import it.
 """
 
@@ -47,8 +48,17 @@ def main() -> None:
         help="busy-wait the whole gap to the next tick instead of sleeping until just before "
         "it: one core stays hot, and act is faster on a VM whose idle vCPU goes cold",
     )
+    parser.add_argument(
+        "--keep-awake",
+        action="store_true",
+        help="spin a lowest-priority (SCHED_IDLE) process on the --cpu core, which the loop "
+        "preempts: the core never drops into a sleep state between ticks",
+    )
     args = parser.parse_args()
+    if args.keep_awake and args.cpu is None:
+        parser.error("--keep-awake keeps the loop's core awake: give it with --cpu")
 
+    awake = loop.keep_awake(args.cpu) if args.keep_awake else None  # before SCHED_FIFO
     for note in loop.realtime(args.cpu, args.fifo):
         print(note)
     policy = Policy.load(args.bundle, threads=1)
@@ -93,6 +103,8 @@ def main() -> None:
         sense(observed)
 
     ticks = loop.run(act, step, args.rate, args.seconds, args.warmup, args.spin)
+    if awake is not None:
+        awake.terminate()
     print(f"{policy} on {team.env_id} with agents {team.agents}")
     print(ticks.summary())
     returns = episode["finished"]

@@ -884,8 +884,15 @@ def bench_runtime(seconds: float, agents: str, no_scaling: bool) -> None:
 @click.option("--cpu", type=int, help="Pin the loop to this core.")
 @click.option("--fifo", type=int, metavar="PRIORITY", help="SCHED_FIFO at this priority (1-99).")
 @click.option("--spin", is_flag=True, help="Busy-wait between ticks instead of sleeping.")
+@click.option(
+    "--keep-awake",
+    is_flag=True,
+    help="Spin a SCHED_IDLE process on the --cpu core so it never idles between ticks.",
+)
 @user_errors
-def bench_jitter(seconds: float, cpu: int | None, fifo: int | None, spin: bool) -> None:
+def bench_jitter(
+    seconds: float, cpu: int | None, fifo: int | None, spin: bool, keep_awake: bool
+) -> None:
     """The control loop's p50 / p99 / p99.9 / max and late ticks, idle and under a CPU load.
 
     n = 6 at 1 kHz and n = 64 at 100 Hz (simulated robots, paper-size untrained policies),
@@ -893,11 +900,13 @@ def bench_jitter(seconds: float, cpu: int | None, fifo: int | None, spin: bool) 
 
     \b
     Example:
-      mat bench jitter --seconds 60 --cpu 1 --fifo 80
+      mat bench jitter --seconds 60 --cpu 1 --fifo 80 --keep-awake
     """
     from mat_sdk.bench.jitter import main as run
 
-    run(seconds=seconds, cpu=cpu, fifo=fifo, spin=spin)
+    if keep_awake and cpu is None:
+        raise click.UsageError("--keep-awake keeps the loop's core awake: give it with --cpu")
+    run(seconds=seconds, cpu=cpu, fifo=fifo, spin=spin, keep_awake=keep_awake)
 
 
 @bench.command("scaling")

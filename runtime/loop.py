@@ -2,6 +2,7 @@
 
     from mat_runtime import Policy, loop
     notes = loop.realtime(cpu=3, fifo=80)        # pin + SCHED_FIFO where permitted
+    awake = loop.keep_awake(3)                    # optional: the core never idles
     ticks = loop.run(act=lambda: policy.act(obs, out=actions), step=robot_io, rate=1000)
     print(ticks.summary())                        # act p50 / p99 / p99.9 / max, late ticks
 
@@ -15,13 +16,19 @@ starts at once and the schedule restarts from it).
 
 Under SCHED_FIFO do not `spin` the whole gap: a real-time task that never sleeps hits the
 kernel's real-time throttling (by default 50 ms of every second go to other tasks), which
-stalls the loop for that long (BENCHMARKS.md).
+stalls the loop for that long (BENCHMARKS.md). To keep a core from idling between ticks
+without that, `keep_awake(cpu)` spins a second process on it at SCHED_IDLE, the lowest
+priority, which the loop preempts the moment it wakes: an idle core drops into a sleep state
+(and, in a virtual machine, is descheduled by the hypervisor) that the next tick pays to
+leave.
 """
 
 from __future__ import annotations
 
 import gc
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -56,6 +63,37 @@ def realtime(cpu: int | None = None, fifo: int | None = None) -> list[str]:
         except (OSError, ValueError) as error:
             notes.append(f"SCHED_FIFO at priority {fifo} refused ({error}); normal priority")
     return notes
+
+
+# Spins at SCHED_IDLE on one core until its parent exits (checked every few milliseconds).
+_AWAKE = """
+import os, sys
+parent = os.getppid()
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+os.sched_setaffinity(0, {int(sys.argv[1])})
+print("ready", flush=True)
+while os.getppid() == parent:
+    for _ in range(100_000):
+        pass
+"""
+
+
+def keep_awake(cpu: int) -> subprocess.Popen:
+    """Keep core `cpu` from idling: a process spinning on it at SCHED_IDLE, which any other
+    task (the controller above all) preempts at once. Returns once it spins; `.terminate()`
+    it when done (it also ends with this process). It burns the core's idle time, so give
+    it a core that serves the controller alone."""
+    if cpu not in os.sched_getaffinity(0):
+        raise ValueError(
+            f"CPU {cpu} is not one this process may use: {sorted(os.sched_getaffinity(0))}"
+        )
+    spinner = subprocess.Popen(
+        [sys.executable, "-c", _AWAKE, str(cpu)], stdout=subprocess.PIPE, text=True
+    )
+    if spinner.stdout.readline().strip() != "ready":
+        spinner.kill()
+        raise RuntimeError(f"the process that keeps CPU {cpu} awake did not start")
+    return spinner
 
 
 @dataclass

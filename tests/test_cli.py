@@ -264,6 +264,11 @@ def test_contradicting_options_are_refused_in_one_line(tmp_path):
         assert message in result.output, (args, result.output)
         assert "Traceback" not in result.output
     assert not (tmp_path / "never" / "checkpoint.pt").exists()
+    awake = CliRunner().invoke(main, ["bench", "jitter", "--keep-awake"])
+    assert (
+        awake.exit_code == 2
+        and "--keep-awake keeps the loop's core awake: give it with --cpu" in awake.output
+    )
 
 
 def test_device_auto_trains_on_the_cpu_here(tmp_path):

@@ -465,6 +465,35 @@ def test_realtime_requests_say_what_happened():
     assert note.startswith(("SCHED_FIFO at priority 1", "SCHED_FIFO not permitted: run as root"))
 
 
+def test_keep_awake_spins_at_the_lowest_priority_on_its_core_until_stopped():
+    cpu = sorted(os.sched_getaffinity(0))[-1]
+    spinner = loop.keep_awake(cpu)
+    try:
+        assert spinner.poll() is None  # running
+        assert os.sched_getscheduler(spinner.pid) == os.SCHED_IDLE
+        assert os.sched_getaffinity(spinner.pid) == {cpu}
+    finally:
+        spinner.terminate()
+        spinner.wait(timeout=10)
+    with pytest.raises(ValueError, match="CPU 10000 is not one this process may use"):
+        loop.keep_awake(10_000)
+    orphan = f"from mat_runtime import loop; print(loop.keep_awake({cpu}).pid)"
+    pid = int(subprocess.run([sys.executable, "-c", orphan], capture_output=True,
+                             text=True, check=True).stdout)  # fmt: skip
+    deadline = time.monotonic() + 10
+    while _alive(pid) and time.monotonic() < deadline:  # it ends with its parent
+        time.sleep(0.05)
+    assert not _alive(pid)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(") ")[1][0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
 @pytest.mark.slow
 def test_bench_jitter_prints_idle_and_loaded_tables():
     out = subprocess.run(

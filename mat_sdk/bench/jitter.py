@@ -5,7 +5,8 @@ of the loop's figures). Then `mat_runtime.loop` (what `examples/controller.py` r
 simulated robots at the paper's model size, one ORT thread, `act(obs, out=...)`: n = 6
 (cheetah-6x1) at 1 kHz and n = 64 (swimmer-65) at 100 Hz, each for `seconds` with the
 machine otherwise idle, and again while one busy process per core (started and stopped
-here) competes for every CPU.
+here) competes for every CPU. `keep_awake`: the loop's core is kept from idling between
+ticks by a SCHED_IDLE spinner (`mat_runtime.loop.keep_awake`).
 """
 
 from __future__ import annotations
@@ -113,10 +114,26 @@ def call_by_call(bundle: Path, calls: int = 20_000) -> list[dict]:
 
 
 def main(
-    seconds: float = 10.0, cpu: int | None = None, fifo: int | None = None, spin: bool = False
+    seconds: float = 10.0,
+    cpu: int | None = None,
+    fifo: int | None = None,
+    spin: bool = False,
+    keep_awake: bool = False,
 ) -> None:
     every_core = os.sched_getaffinity(0)  # before pinning: where the load runs
+    awake = loop.keep_awake(cpu) if keep_awake else None  # started before SCHED_FIFO
+    try:
+        _tables(seconds, cpu, fifo, spin, every_core, awake)
+    finally:
+        if awake is not None:
+            awake.terminate()
+            awake.wait()
+
+
+def _tables(seconds, cpu, fifo, spin, every_core, awake) -> None:
     notes = loop.realtime(cpu, fifo)
+    if awake is not None:
+        notes.append(f"CPU {cpu} kept awake by a SCHED_IDLE spinner")
     print(f"machine: {machine()}; {os.cpu_count()} CPUs; " + "; ".join(notes or ["no pinning"]))
     with tempfile.TemporaryDirectory() as tmp:
         bundles = {env_id: untrained_bundle(Path(tmp) / env_id, env_id)[0] for env_id, _ in ROBOTS}
