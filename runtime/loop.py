@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SPIN_MARGIN = 200e-6  # seconds of busy-waiting before each tick
+WARMUP = 1.0  # seconds run before measuring
 
 
 def realtime(cpu: int | None = None, fifo: int | None = None) -> list[str]:
@@ -132,7 +133,7 @@ def run(
     step: Callable[[], object],
     rate: float,
     seconds: float = 10.0,
-    warmup: float = 1.0,
+    warmup: float = WARMUP,
     spin: bool = False,
     spin_margin: float = SPIN_MARGIN,
 ) -> Ticks:

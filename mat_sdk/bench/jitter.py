@@ -3,8 +3,8 @@
 First one step back to back: medians, then call by call (the machine's own spread, the floor
 of the loop's figures). Then `mat_runtime.loop` (what `examples/controller.py` runs) on
 simulated robots at the paper's model size, one ORT thread, `act(obs, out=...)`: n = 6
-(cheetah-6x1) at 1 kHz and n = 64 (swimmer-65) at 100 Hz, each for `seconds` with the
-machine otherwise idle, and again while one busy process per core (started and stopped
+(cheetah-6x1) at 1 kHz and n = 64 (swimmer-65) at 100 Hz, each for `seconds` (one episode
+throughout: no simulator resets between ticks) with the machine otherwise idle, and again while one busy process per core (started and stopped
 here) competes for every CPU. `keep_awake`: the loop's core is kept from idling between
 ticks by a SCHED_IDLE spinner (`mat_runtime.loop.keep_awake`).
 """
@@ -38,7 +38,10 @@ def _burn(cores: set[int]) -> None:
 
 
 def _measure(bundle: Path, env_id: str, rate: float, seconds: float, spin: bool) -> dict:
-    policy, team = Policy.load(bundle, threads=1), make_team(env_id)
+    # one episode for the whole run: a simulator's reset (1.3-1.5 ms for a cheetah) is not a
+    # controller's tick, and at 1 kHz each one would count as a late tick
+    episode = int(rate * (seconds + 2 * loop.WARMUP)) + 1
+    policy, team = Policy.load(bundle, threads=1), make_team(env_id, episode_limit=episode)
     obs = np.zeros((team.n_agents, policy.obs_dim), np.float32)
     obs[:] = team.reset(seed=0)
     actions = np.zeros((team.n_agents, policy.action_size), np.float32)
