@@ -16,12 +16,14 @@ def _args(**changes):
 
 def test_the_plan_has_every_cell_of_the_experiment():
     cells = transfer.train_cells(_args())
-    assert set(cells) == {"multi", "multi-fraction", "multi-ends", "single", "padded",
-                          "specialist-8", "specialist-10"}  # fmt: skip
+    assert set(cells) == {"multi", "multi-fraction", "multi-ends", "multi-near-ends",
+                          "multi-end-flags", "single", "padded", "specialist-8",
+                          "specialist-10"}  # fmt: skip
     ids = [transfer.FAMILY.format(k) for k in (3, 4, 5)]
-    id_free = {"position": None}  # named, or `mat train` would give a family "ends"
+    id_free = {"position": None}  # named, or `mat train` would give a family "end-flags"
     assert cells["multi"] == (ids, id_free)
     assert cells["multi-ends"] == (ids, {"position": "ends"})
+    assert cells["multi-end-flags"] == (ids, {"position": "end-flags"})
     assert cells["single"] == ([transfer.FAMILY.format(4)], id_free)
     assert cells["padded"] == (ids, {"pad_agents": 12, "agent_id": True, **id_free})
     assert cells["specialist-10"] == ([transfer.FAMILY.format(10)], id_free)
@@ -49,7 +51,8 @@ def test_the_report_compares_each_target_with_its_specialist(tmp_path):
         writer.writerows([*row, 0.0] for row in rows)
     text = transfer.report(table, tmp_path / "plot.png", targets=[8])
     assert "| 8 | 11.0 ± 1.0 | -80.0 |" in text  # count, multi, random (seeds' spread)
-    # 11 / 21 of the specialist; with the random team at 0: (11 + 80) / (21 + 80)
-    assert "| 8 | multi | 11.0 ± 1.0 | 0.52 | 0.90 |" in text
-    assert "| 8 | finetune-8/multi | 25.0 ± 0.0 | 1.19 | 1.04 |" in text
+    # with the random team at 0: (11 + 80) / (21 + 80); resampled seeds: 10 or 12 against
+    # 20 or 22, from (10 + 80) / (22 + 80) to (12 + 80) / (20 + 80)
+    assert "| 8 | multi | 2 | 11.0 ± 1.0 | 0.90 | 0.88 to 0.92 |" in text
+    assert "| 8 | finetune-8/multi | 2 | 25.0 ± 0.0 | 1.04 | 1.03 to 1.05 |" in text
     assert (tmp_path / "plot.png").stat().st_size > 1000

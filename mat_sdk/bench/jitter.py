@@ -4,9 +4,10 @@ First one step back to back: medians, then call by call (the machine's own sprea
 of the loop's figures). Then `mat_runtime.loop` (what `examples/controller.py` runs) on
 simulated robots at the paper's model size, one ORT thread, `act(obs, out=...)`: n = 6
 (cheetah-6x1) at 1 kHz and n = 64 (swimmer-65) at 100 Hz, each for `seconds` (one episode
-throughout: no simulator resets between ticks) with the machine otherwise idle, and again while one busy process per core (started and stopped
-here) competes for every CPU. `keep_awake`: the loop's core is kept from idling between
-ticks by a SCHED_IDLE spinner (`mat_runtime.loop.keep_awake`).
+throughout: no simulator resets between ticks) with the machine otherwise idle, and again
+while one busy process per core (started and stopped here) competes for every CPU.
+`keep_awake`: the loop's core is kept from idling between ticks by a SCHED_IDLE spinner
+(`mat_runtime.loop.keep_awake`).
 """
 
 from __future__ import annotations

@@ -32,6 +32,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from scipy import stats
 
 from mat_sdk.bench.seeds import EVALUATION_SEED
 
@@ -216,9 +217,25 @@ def _append(table: Path, cell: str, seed: int, results: dict) -> None:
         os.fsync(f.fileno())
 
 
+def _normalised(values, specialist, floor: float) -> tuple[float, tuple[float, float]]:
+    """A cell's mean return as a fraction of the specialist's, a random team's at 0, and its
+    95 % bootstrap CI, the seeds of both resampled (NaN with fewer than 2 seeds of either)."""
+
+    def ratio(cell, best):
+        return (np.mean(cell) - floor) / (np.mean(best) - floor)
+
+    if min(len(values), len(specialist)) < 2:
+        return ratio(values, specialist), (np.nan, np.nan)
+    interval = stats.bootstrap(
+        (np.asarray(values), np.asarray(specialist)), ratio, vectorized=False, paired=False,
+        n_resamples=2000, method="percentile", random_state=0,
+    ).confidence_interval  # fmt: skip
+    return ratio(values, specialist), (interval.low, interval.high)
+
+
 def report(table: Path, plot: Path, targets: list[int]) -> str:
     """Markdown: return per count (mean ± std over seeds) for each cell, then each target's
-    ratios to the specialist, raw and with the random team at 0."""
+    ratio to the specialist with the random team at 0, with its bootstrap CI over seeds."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -245,24 +262,26 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
     lines += [f"| {k} | " + " | ".join(cell(c, k) for c in curves) + " |" for k in counts]
     lines += [
         "",
-        "| count | cell | return | / specialist | / specialist, random = 0 |",
-        "|---|---|---|---|---|",
+        "| count | cell | seeds | return | vs specialist, random = 0 | 95 % CI |",
+        "|---|---|---|---|---|---|",
     ]
     for k in targets:
         specialist = seeds.get((f"specialist-{k}", k))
         if not specialist:
             continue
-        best, floor = np.mean(specialist), np.mean(seeds[("random", k)])
-        lines.append(f"| {k} | specialist-{k} | {cell(f'specialist-{k}', k)} | 1 | 1 |")
+        floor = np.mean(seeds[("random", k)])
+        lines.append(
+            f"| {k} | specialist-{k} | {len(specialist)} | {cell(f'specialist-{k}', k)} | 1 | |"
+        )
         compared = [c for c in cells if c not in REFERENCES and not c.startswith("specialist-")]
         for name in [c for c in compared if c in curves or c.startswith(f"finetune-{k}/")]:
             values = seeds.get((name, k))
             if not values:
                 continue
-            mean = np.mean(values)
+            ratio, (low, high) = _normalised(values, specialist, floor)
+            interval = f"{low:.2f} to {high:.2f}" if np.isfinite(low) else ""
             lines.append(
-                f"| {k} | {name} | {cell(name, k)} | {mean / best:.2f} "
-                f"| {(mean - floor) / (best - floor):.2f} |"
+                f"| {k} | {name} | {len(values)} | {cell(name, k)} | {ratio:.2f} | {interval} |"
             )
 
     figure, axis = plt.subplots(figsize=(7, 4.5))
