@@ -284,7 +284,7 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
                 f"| {k} | {name} | {len(values)} | {cell(name, k)} | {ratio:.2f} | {interval} |"
             )
 
-    figure, axis = plt.subplots(figsize=(7, 4.5))
+    figure, axis = plt.subplots(figsize=(10, 4.5))
     for name in curves:
         ks = [k for k in counts if (name, k) in seeds]
         mean = np.array([np.mean(seeds[name, k]) for k in ks])
@@ -308,7 +308,7 @@ def report(table: Path, plot: Path, targets: list[int]) -> str:
         )
     axis.set_xlabel("agents (segments)")
     axis.set_ylabel("return (mean ± std over seeds)")
-    axis.legend(fontsize=7, ncol=2)
+    axis.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1))
     axis.grid(alpha=0.3)
     figure.tight_layout()
     figure.savefig(plot, dpi=120)

@@ -1,6 +1,6 @@
 """Put a trained run into the model zoo (`zoo/NAME/`), with a card that says what it scores.
 
-    mat zoo add runs/transfer/multi/seed_0 swimmer-family-mat \
+    mat zoo add runs/transfer/multi-end-flags/seed_2 swimmer-family-mat \
         --command "python -m mat_sdk.bench.transfer --steps 200000 --out runs/transfer"
 
 Copies the checkpoint, exports its bundle, evaluates it as `mat eval zoo:NAME --episodes N`
