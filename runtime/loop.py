@@ -1,8 +1,8 @@
 """A fixed-rate control loop and the figures a controller is judged by: its worst ticks.
 
     from mat_runtime import Policy, loop
+    awake = loop.keep_awake(3)                    # optional: core 3 never idles
     notes = loop.realtime(cpu=3, fifo=80)        # pin + SCHED_FIFO where permitted
-    awake = loop.keep_awake(3)                    # optional: the core never idles
     ticks = loop.run(act=lambda: policy.act(obs, out=actions), step=robot_io, rate=1000)
     print(ticks.summary())                        # act p50 / p99 / p99.9 / max, late ticks
 
@@ -83,7 +83,8 @@ def keep_awake(cpu: int) -> subprocess.Popen:
     """Keep core `cpu` from idling: a process spinning on it at SCHED_IDLE, which any other
     task (the controller above all) preempts at once. Returns once it spins; `.terminate()`
     it when done (it also ends with this process). It burns the core's idle time, so give
-    it a core that serves the controller alone."""
+    it a core that serves the controller alone. Start it before `realtime`, or it starts
+    as a real-time task (children inherit SCHED_FIFO) until it lowers itself."""
     if cpu not in os.sched_getaffinity(0):
         raise ValueError(
             f"CPU {cpu} is not one this process may use: {sorted(os.sched_getaffinity(0))}"

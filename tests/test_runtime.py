@@ -504,6 +504,7 @@ def test_bench_jitter_prints_idle_and_loaded_tables():
     assert out.count("| swimmer-65 (n = 64) | 100 Hz |") == 2, out
     assert "| act(obs, out=...) |" in out, out
     assert "| act(obs, out=...), 20,000 calls |" in out, out  # call by call: the floor
+    assert "### the core's own stalls" in out and "gaps > 1000 µs" in out, out
 
 
 def test_a_bundle_remembers_its_robot_and_the_controller_runs_on_it(tmp_path):

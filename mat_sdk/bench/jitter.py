@@ -7,7 +7,8 @@ simulated robots at the paper's model size, one ORT thread, `act(obs, out=...)`:
 throughout: no simulator resets between ticks) with the machine otherwise idle, and again
 while one busy process per core (started and stopped here) competes for every CPU.
 `keep_awake`: the loop's core is kept from idling between ticks by a SCHED_IDLE spinner
-(`mat_runtime.loop.keep_awake`).
+(`mat_runtime.loop.keep_awake`). After the idle rows, the core's own stalls with no policy
+(`core_stalls`): gaps of a millisecond there are late ticks no controller can avoid.
 """
 
 from __future__ import annotations
@@ -117,6 +118,37 @@ def call_by_call(bundle: Path, calls: int = 20_000) -> list[dict]:
     ]
 
 
+STALLS = (100e-6, 500e-6, 1e-3)  # gap lengths counted by `core_stalls`, seconds
+
+
+def core_stalls(seconds: float) -> list[dict]:
+    """How often the core itself stops running this process, with no policy at all: a tight
+    loop reads the clock for `seconds` and counts the gaps between reads longer than each of
+    STALLS (an interrupt, the kernel, a hypervisor taking the vCPU). A gap longer than a
+    tick's slack makes a late tick whatever the controller does. The loop sleeps 0.5 ms
+    every 5 ms, so a SCHED_FIFO process stays clear of real-time throttling; those sleeps
+    are not counted."""
+    clock, gaps = time.perf_counter, []
+    end = clock() + seconds
+    while clock() < end:
+        last = clock()
+        burst = last + 5e-3
+        while last < burst:
+            now = clock()
+            if now - last > STALLS[0]:
+                gaps.append(now - last)
+            last = now
+        time.sleep(0.0005)
+    gaps = np.asarray(gaps)
+    return [
+        {
+            "core, no policy": f"clock read back to back for {seconds:g} s",
+            **{f"gaps > {limit * 1e6:.0f} µs": f"{(gaps > limit).sum()}" for limit in STALLS},
+            "longest µs": f"{gaps.max() * 1e6:.0f}" if gaps.size else "-",
+        }
+    ]
+
+
 def main(
     seconds: float = 10.0,
     cpu: int | None = None,
@@ -145,6 +177,7 @@ def _tables(seconds, cpu, fifo, spin, every_core, awake) -> None:
         print_table(call_by_call(bundles["cheetah-6x1"]), "one step, back to back, call by call")
         idle = [_measure(bundles[e], e, rate, seconds, spin) for e, rate in ROBOTS]
         print_table(idle, f"idle machine, {seconds:g} s per row")
+        print_table(core_stalls(seconds), "the core's own stalls, idle machine")
         context = multiprocessing.get_context("spawn")
         burners = [
             context.Process(target=_burn, args=(every_core,), daemon=True) for _ in every_core
