@@ -17,13 +17,15 @@ def _args(**changes):
 def test_the_plan_has_every_cell_of_the_experiment():
     cells = transfer.train_cells(_args())
     assert set(cells) == {"multi", "multi-fraction", "multi-ends", "multi-near-ends",
-                          "multi-end-flags", "single", "padded", "specialist-8",
-                          "specialist-10"}  # fmt: skip
+                          "multi-end-flags", "multi-end-flags-window-4", "single", "padded",
+                          "specialist-8", "specialist-10"}  # fmt: skip
     ids = [transfer.FAMILY.format(k) for k in (3, 4, 5)]
     id_free = {"position": None}  # named, or `mat train` would give a family "end-flags"
     assert cells["multi"] == (ids, id_free)
     assert cells["multi-ends"] == (ids, {"position": "ends"})
     assert cells["multi-end-flags"] == (ids, {"position": "end-flags"})
+    assert cells["multi-end-flags-window-4"] == cells["multi-end-flags"]  # the model differs:
+    assert transfer._model("multi-end-flags-window-4") == {"attention_window": 4}
     assert cells["single"] == ([transfer.FAMILY.format(4)], id_free)
     assert cells["padded"] == (ids, {"pad_agents": 12, "agent_id": True, **id_free})
     assert cells["specialist-10"] == ([transfer.FAMILY.format(10)], id_free)

@@ -4,8 +4,10 @@
 
 Every run is a `mat train` / `mat finetune` / `mat export` command (printed as it starts), so
 each cell can be rerun by hand. Per seed:
-- `multi`, `multi-fraction`, `multi-ends`: one policy trained on the counts `--train`
-  (updates alternating), id-free or with a count-independent position identity;
+- `multi`, `multi-fraction`, `multi-ends`, `multi-near-ends`, `multi-end-flags`: one
+  policy trained on the counts `--train` (updates alternating), id-free or with a
+  count-independent position identity; `multi-end-flags-window-4` the last with
+  `attention_window=4`;
 - `single`: the same budget on the middle training count alone;
 - `padded`: the official code's approach, every count padded to `--pad` inactive zero agents
   with a one-hot id over them;
@@ -47,6 +49,9 @@ IDENTITIES = {
     "multi-near-ends": "near-ends",
     "multi-end-flags": "end-flags",
 }
+# Multi cells whose model differs from the recipe's: end-flags with attention limited to the
+# 4 nearest agents on each side (linear in the agent count, docs/ALGORITHM.md)
+MODELS = {"multi-end-flags-window-4": ("end-flags", {"attention_window": 4})}
 FIELDS = ["cell", "seed", "count", "return_mean", "return_std"]
 # Teams to compare with: uniform random actions (the normalisation's 0), and zero actions (a
 # robot held still: on a walker that earns the alive bonus without any control cost)
@@ -65,6 +70,7 @@ def train_cells(args) -> dict[str, tuple[list[str], dict | None]]:
     # every cell names its identity: `mat train` would give a family position="ends"
     id_free = {"position": None}
     cells = {name: ([*ids], {"position": position}) for name, position in IDENTITIES.items()}
+    cells |= {name: ([*ids], {"position": position}) for name, (position, _) in MODELS.items()}
     cells["single"] = ([middle], id_free)
     cells["padded"] = ([*ids], {"pad_agents": args.pad, "agent_id": True, **id_free})
     for k in args.targets:
@@ -84,13 +90,19 @@ def _run(command: list[str], log: Path) -> None:
         subprocess.run(command, check=True, stdout=f, stderr=subprocess.STDOUT)
 
 
-def _train(ids: list[str], options, seed: int, steps: int, out: Path) -> None:
+def _model(name: str) -> dict:
+    """The model settings a cell adds to the recipe (`MODELS`); none for most cells."""
+    return MODELS[name][1] if name in MODELS else {}
+
+
+def _train(ids: list[str], options, seed: int, steps: int, out: Path, model: dict) -> None:
     if (out / "done").exists():
         return
     resume = ["--resume"] if (out / "checkpoint.pt").exists() else []
     command = ["mat", "train", *ids, "--seed", str(seed), "--steps", str(steps)]
     command += ["--eval-every", "0"]  # evaluated afterwards, through the runtime
-    _run([*command, "--out", str(out), "--quiet", *resume, *_settings(options)], out / "log.txt")
+    settings = _settings(options, {**RECIPE, **model})
+    _run([*command, "--out", str(out), "--quiet", *resume, *settings], out / "log.txt")
     (out / "done").touch()
 
 
@@ -153,13 +165,13 @@ def run_experiment(args) -> None:
     order = sorted(runs, key=lambda key: -max(_counts(cells[key[0]][0])))
     with ThreadPoolExecutor(args.jobs) as pool:
         jobs = [
-            pool.submit(_train, cells[name][0], cells[name][1], seed, budget, runs[name, seed])
+            pool.submit(_train, *cells[name], seed, budget, runs[name, seed], _model(name))
             for name, seed in order
         ]
         for job in jobs:
             job.result()
         for k in args.targets:
-            for name in [name for name in IDENTITIES if name in cells]:
+            for name in [name for name in [*IDENTITIES, *MODELS] if name in cells]:
                 for seed in args.seeds:
                     run = out / f"finetune-{k}" / name / f"seed_{seed}"
                     runs[f"finetune-{k}/{name}", seed] = run
