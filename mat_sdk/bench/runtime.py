@@ -224,7 +224,8 @@ def main(agent_counts=AGENTS, seconds: float = 2.0, scale: bool = True) -> None:
                     }
                 )
     print_table(rows, f"One control step, one thread — {machine()}")
-    for label, model in {**SIZES, **WINDOWED}.items() if scale else {}.items():
+    scaled = {**SIZES, **WINDOWED} if scale else {}
+    for label, model in scaled.items():
         with tempfile.TemporaryDirectory() as tmp:
             bundle, policy = untrained_bundle(Path(tmp), **model)
             times = _scaling(bundle, policy.cfg.obs_dim, seconds)
