@@ -38,6 +38,7 @@ _RULES = (
     (("gamma", "gae_lambda"), lambda x: 0 <= x <= 1, "in [0, 1]"),
     # env copy i is seeded seed + i, and MuJoCo tasks' numpy streams take seeds below 2**32
     (("seed",), lambda x: 0 <= x < 2**31, "in 0..2**31 - 1"),
+    (("attention_window",), lambda x: x >= 2, ">= 2 or null"),
 )  # fmt: skip
 
 
@@ -78,7 +79,7 @@ class TrainConfig:
     n_head: int = 1
     n_block: int = 1
     # MAT: attend only to agents fewer than this many places away (None: all; the paper's).
-    # Linear cost in the agent count instead of quadratic (docs/ARCHITECTURE.md).
+    # Linear cost in the agent count instead of quadratic (docs/ALGORITHM.md).
     attention_window: int | None = None
     shuffle_agents: bool = False  # the paper shuffles the order; the official code does not
     normalize_obs: bool = True
@@ -101,7 +102,7 @@ class TrainConfig:
 
     def __post_init__(self):
         """Refuse a bad value here, before any env worker starts, naming the field."""
-        integer = {f.name for f in fields(self) if f.type == "int"}
+        integer = {f.name for f in fields(self) if f.type in ("int", "int | None")}
         for names, ok, rule in _RULES:
             for name in names:
                 value = getattr(self, name)
@@ -128,13 +129,6 @@ class TrainConfig:
                 isinstance(value, list) and all(isinstance(v, str) for v in value)
             ):
                 raise ValueError(f"{f.name} must be a list of strings, got {value!r}")
-        window = self.attention_window
-        if window is not None and not (
-            isinstance(window, numbers.Integral) and not isinstance(window, bool) and window >= 2
-        ):
-            raise ValueError(f"attention_window must be an integer >= 2 or null, got {window!r}")
-        if window is not None:
-            self.attention_window = int(window)
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "

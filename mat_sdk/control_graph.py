@@ -202,26 +202,24 @@ def _encoder(g: GraphBuilder, x: str, cfg, value_fold: dict) -> tuple[str, str]:
     """mat_sdk.model.Encoder: rep [B, n, C] and de-normalised values [B, n, 1]."""
     x = g.gelu(g.linear(g.layer_norm(x, "encoder.obs_encoder.0"), "encoder.obs_encoder.1"))
     x = g.layer_norm(x, "encoder.ln")
+    band = None if cfg.attention_window is None else _band(g, x, cfg.attention_window)
     for b in range(cfg.n_block):
         block = f"encoder.blocks.{b}"
         q, k, v = g.qkv(x, f"{block}.attn", ("query", "key", "value"))
-        if cfg.attention_window is None:
+        if band is None:
             attended = g.op("Attention", q, k, v, q_num_heads=cfg.n_head, kv_num_heads=cfg.n_head)
         else:
-            attended = _banded_attention(g, q, k, v, cfg)
+            attended = _banded_attention(g, q, k, v, cfg, *band)
         x = g.layer_norm(g.op("Add", x, g.linear(attended, f"{block}.attn.proj")), f"{block}.ln1")
         x = g.layer_norm(g.op("Add", x, _mlp_block(g, x, f"{block}.mlp")), f"{block}.ln2")
     return x, _head(g, x, "encoder.head", **value_fold)
 
 
-def _banded_attention(g: GraphBuilder, q: str, k: str, v: str, cfg) -> str:
-    """Attention of every agent over the agents fewer than W = `cfg.attention_window` places
-    away, on [B, n, C] tensors, in O(n W) time and memory: each agent's 2 W - 1 neighbours'
-    keys and values are gathered ([B, n, 2 W - 1, C]; those past either end masked out), so
-    no [n, n] score matrix is ever formed."""
-    heads, window = cfg.n_head, cfg.attention_window
-    span = 2 * window - 1
-    count = g.op("Squeeze", g.op("Shape", q, start=1, end=2))
+def _band(g: GraphBuilder, x: str, window: int) -> tuple[str, str]:
+    """Each agent's 2 window - 1 neighbours in `x` [B, n, C], for every encoder block: their
+    indices [n, span] (clamped into the team) and a score mask [n, 1, 1, span], -inf for
+    those past either end."""
+    count = g.op("Squeeze", g.op("Shape", x, start=1, end=2))
     agents = g.op("Range", g.const(0, "zero_i", np.int64), count, g.const(1, "one_i", np.int64))
     offsets = g.const(np.arange(-(window - 1), window), "offsets", np.int64)
     neighbours = g.op("Add", g.op("Unsqueeze", agents, g.const([1], "axis1", np.int64)), offsets)
@@ -232,7 +230,15 @@ def _banded_attention(g: GraphBuilder, q: str, k: str, v: str, cfg) -> str:
     )  # [n, span]
     index = g.op("Where", inside, neighbours, g.const(0, "zero_i", np.int64))
     outside = g.op("Where", inside, g.const(0.0, "zero"), g.const(-np.inf, "minus_inf"))
-    outside = g.op("Unsqueeze", outside, g.const([1, 2], "axes12", np.int64))  # [n, 1, 1, span]
+    return index, g.op("Unsqueeze", outside, g.const([1, 2], "axes12", np.int64))
+
+
+def _banded_attention(g: GraphBuilder, q: str, k: str, v: str, cfg, index, outside) -> str:
+    """Attention of every agent over the agents fewer than W = `cfg.attention_window` places
+    away, on [B, n, C] tensors, in O(n W) time and memory: each agent's 2 W - 1 neighbours'
+    keys and values are gathered ([B, n, 2 W - 1, C]; `_band`'s `index` and `outside`), so
+    no [n, n] score matrix is ever formed."""
+    heads, span = cfg.n_head, 2 * cfg.attention_window - 1
     split = g.const([0, 0, span, heads, -1], "split", np.int64)  # [B, n, span, H, d]
     keys = g.op("Reshape", g.op("Gather", k, index, axis=1), split)
     values = g.op("Reshape", g.op("Gather", v, index, axis=1), split)

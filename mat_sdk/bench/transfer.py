@@ -67,7 +67,7 @@ def train_cells(args) -> dict[str, tuple[list[str], dict | None]]:
     """{run name: (`mat train` arguments but --out, env options)} for one seed."""
     ids = [args.family.format(k) for k in args.train]
     middle = args.family.format(args.train[len(args.train) // 2])
-    # every cell names its identity: `mat train` would give a family position="ends"
+    # every cell names its identity: `mat train` would give a family position="end-flags"
     id_free = {"position": None}
     cells = {name: ([*ids], {"position": position}) for name, position in IDENTITIES.items()}
     cells |= {name: ([*ids], {"position": position}) for name, (position, _) in MODELS.items()}
