@@ -25,7 +25,7 @@ sys.modules["torch"] = None  # prove the point: importing torch now raises Impor
 import numpy as np
 
 from mat_runtime import Policy, loop
-from mat_sdk.envs import make_team
+from mat_sdk.envs import UntrustedEnvError, check_trusted, make_team
 
 
 def main() -> None:
@@ -54,6 +54,12 @@ def main() -> None:
         help="spin a lowest-priority (SCHED_IDLE) process on the --cpu core, which the loop "
         "preempts: the core never drops into a sleep state between ticks",
     )
+    parser.add_argument(
+        "--trust-env-code",
+        action="store_true",
+        help="import the module:function env id the bundle records (it runs that module's "
+        "code): only for bundles you trust",
+    )
     args = parser.parse_args()
     if args.keep_awake and args.cpu is None:
         parser.error("--keep-awake keeps the loop's core awake: give it with --cpu")
@@ -64,6 +70,10 @@ def main() -> None:
     policy = Policy.load(args.bundle, threads=1)
     faults = dict(f.split("=", 1) for f in args.fault)
     if args.env is None:  # the trained robot: its faults (unless --fault) and env options
+        try:  # an id read from the bundle runs no code unless trusted
+            check_trusted([policy.env_id], args.trust_env_code, str(policy.path / "manifest.json"))
+        except UntrustedEnvError as error:
+            parser.exit(2, f"{error}\n")
         team = make_team(policy.env_id, faults or policy.env_faults, **policy.env_options)
     else:
         team = make_team(args.env, faults or None)

@@ -21,7 +21,7 @@ import re
 import numpy as np
 
 from mat_runtime import Policy
-from mat_sdk.envs import make_team
+from mat_sdk.envs import UntrustedEnvError, check_trusted, make_team
 
 
 def run_episode(team, choose, seed: int) -> float:
@@ -48,9 +48,18 @@ def main() -> None:
         "--sizes", type=int, nargs="+", default=[4, 8, 3, 10, 12], help="one per episode"
     )
     parser.add_argument("--seed", type=int, default=100, help="the first episode's start")
+    parser.add_argument(
+        "--trust-env-code",
+        action="store_true",
+        help="import the module:function env id the bundle records: only for bundles you trust",
+    )
     args = parser.parse_args()
 
     policy = Policy.load(args.bundle)  # once: one ONNX Runtime session serves every count below
+    try:  # an id read from the bundle runs no code unless trusted
+        check_trusted([policy.env_id], args.trust_env_code, str(policy.path / "manifest.json"))
+    except UntrustedEnvError as error:
+        parser.exit(2, f"{error}\n")
     rng = np.random.default_rng(0)
     print(f"{policy}\ntrained on agent counts {policy.manifest['agents'].get('trained_counts')}\n")
     print("| episode | env | agents | policy return | random team |")

@@ -31,7 +31,8 @@ from mat_export.graphs import (
     ValueScale,
     cache_names,
 )
-from mat_sdk import checkpoint
+from mat_runtime.manifest import GRAPH_NAME
+from mat_sdk import checkpoint, envs, files
 from mat_sdk.control_graph import OPSET as DECODE_OPSET
 from mat_sdk.control_graph import build_decode
 from mat_sdk.model import MAT, ModelConfig, build_policy
@@ -54,67 +55,81 @@ class ExportError(ValueError):
 
 
 def export(
-    checkpoint_path: str | Path, out_dir: str | Path, force: bool = False, agent_counts=AGENT_COUNTS
+    checkpoint_path: str | Path,
+    out_dir: str | Path,
+    force: bool = False,
+    agent_counts=AGENT_COUNTS,
+    trust_env_code: bool = False,
 ) -> dict[str, Any]:
     """Write the bundle and return its manifest.
 
     `encoder.onnx`, `decoder_step.onnx`, `decode.onnx` (any agent count) and, for MAT,
     `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),
-    which the runtime uses when it is given exactly N agents.
+    which the runtime uses when it is given exactly N agents. The exporter builds the env
+    the checkpoint records (its wiring goes into the manifest); a `module:function` env id is
+    imported only with `trust_env_code=True`.
     """
     out_dir, checkpoint_path = Path(out_dir), checkpoint.locate(checkpoint_path)  # or zoo:NAME
     _check_target(out_dir, force, checkpoint_path)
     payload = checkpoint.load(checkpoint_path)
+    envs.check_trusted([payload["config"]["env"]["id"]], trust_env_code, str(checkpoint_path))
     staging = _staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
-        policy, normalizer, value_scale = _rebuild(payload)
-        team = _check_env(payload, policy.cfg)
-        cfg = policy.cfg
-        counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
-        graphs = _export_graphs(policy, normalizer, value_scale, staging)
-        manifest = _manifest(payload, cfg, graphs, checkpoint_path)
-        if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
-            manifest["wiring"] = {**team.wiring(), "normalizer": NORMALIZER_PLACE}
-        folded = (
-            normalizer.mean.numpy(),
-            normalizer.scale.numpy(),
-            normalizer.clip,
-            float(value_scale.mean),
-            float(value_scale.std),
-        )
-        bounds = (manifest["action"]["low"], manifest["action"]["high"])
-        specialised = [cfg.n_agents] if cfg.algo == "mat" else []
-        for agents in [None, *specialised]:
-            name = "decode.onnx" if agents is None else f"decode_n{agents}.onnx"
-            decode = build_decode(policy, *folded, agents=agents, action_bounds=bounds)
-            (staging / name).write_bytes(decode.SerializeToString())
-            graphs[name] = {
-                "inputs": [i.name for i in decode.graph.input],
-                "outputs": [o.name for o in decode.graph.output],
-                "opset": DECODE_OPSET,
-                "agents": agents,  # None: any count
-            }
-        manifest["graphs"] = dict(graphs)
-        parity = measure_parity(policy, normalizer, value_scale, staging, counts, bounds)
-        worst = max(parity["max_abs_diff"].values())
-        if not worst <= PARITY_LIMIT:
-            raise ExportError(
-                f"ONNX Runtime disagrees with torch by {worst:.3g} (> {PARITY_LIMIT}); "
-                "no bundle written"
-            )
-        manifest["parity"] = parity
-        for name in graphs:
-            _finish_graph(staging / name, manifest)
-        manifest["graphs"] = {
-            name: {**io, "sha256": _sha256(staging / name)} for name, io in graphs.items()
-        }
-        (staging / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700
-        _replace(staging, out_dir)
+        with files.writing(out_dir):
+            manifest = _build(payload, checkpoint_path, staging, agent_counts)
+            umask = os.umask(0)
+            os.umask(umask)
+            staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700
+            files.replace_directory(staging, out_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    return manifest
+
+
+def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) -> dict[str, Any]:
+    """Every graph and the manifest into `staging`, held to torch's output; the manifest."""
+    policy, normalizer, value_scale = _rebuild(payload)
+    team = _check_env(payload, policy.cfg)
+    cfg = policy.cfg
+    counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
+    graphs = _export_graphs(policy, normalizer, value_scale, staging)
+    manifest = _manifest(payload, cfg, graphs, checkpoint_path)
+    if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
+        manifest["wiring"] = {**team.wiring(), "normalizer": NORMALIZER_PLACE}
+    folded = (
+        normalizer.mean.numpy(),
+        normalizer.scale.numpy(),
+        normalizer.clip,
+        float(value_scale.mean),
+        float(value_scale.std),
+    )
+    bounds = (manifest["action"]["low"], manifest["action"]["high"])
+    specialised = [cfg.n_agents] if cfg.algo == "mat" else []
+    for agents in [None, *specialised]:
+        name = "decode.onnx" if agents is None else f"decode_n{agents}.onnx"
+        decode = build_decode(policy, *folded, agents=agents, action_bounds=bounds)
+        (staging / name).write_bytes(decode.SerializeToString())
+        graphs[name] = {
+            "inputs": [i.name for i in decode.graph.input],
+            "outputs": [o.name for o in decode.graph.output],
+            "opset": DECODE_OPSET,
+            "agents": agents,  # None: any count
+        }
+    manifest["graphs"] = dict(graphs)
+    parity = measure_parity(policy, normalizer, value_scale, staging, counts, bounds)
+    worst = max(parity["max_abs_diff"].values())
+    if not worst <= PARITY_LIMIT:
+        raise ExportError(
+            f"ONNX Runtime disagrees with torch by {worst:.3g} (> {PARITY_LIMIT}); "
+            "no bundle written"
+        )
+    manifest["parity"] = parity
+    for name in graphs:
+        _finish_graph(staging / name, manifest)
+    manifest["graphs"] = {
+        name: {**io, "sha256": _sha256(staging / name)} for name, io in graphs.items()
+    }
+    (staging / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 
 
@@ -141,7 +156,8 @@ def _check_target(out_dir: Path, force: bool, checkpoint_path: Path) -> None:
     try:
         listed = json.loads(manifest.read_text())
         is_bundle = listed.get("format") == FORMAT
-        own = {"manifest.json", *listed.get("graphs", {})}
+        # only the files an exporter writes: a doctored manifest cannot list others as its own
+        own = {"manifest.json", *(g for g in listed.get("graphs", {}) if GRAPH_NAME.fullmatch(g))}
     except (OSError, ValueError, AttributeError, TypeError):
         is_bundle, own = False, set()
     if not is_bundle:
@@ -172,24 +188,9 @@ def _staging(out_dir: Path) -> Path:
         ) from None
 
 
-def _replace(staging: Path, out_dir: Path) -> None:
-    """Move the finished bundle into place; an old bundle is moved aside first and deleted
-    only once the new one is there, so a crash leaves one of the two."""
-    if not out_dir.exists():
-        staging.rename(out_dir)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
-    old.rmdir()
-    out_dir.rename(old)
-    staging.rename(out_dir)
-    shutil.rmtree(old, ignore_errors=True)
-
-
 def _check_env(payload: dict, cfg: ModelConfig):
     """The bundle names the robot it drives: that env must exist and fit the model. Returns
     the team, for its wiring."""
-    from mat_sdk import envs
-
     env_id, train = payload["config"]["env"]["id"], payload["config"]["train"]
     try:
         team = envs.make_team(env_id, train.get("faults") or {}, **(train.get("env_options") or {}))

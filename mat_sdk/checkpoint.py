@@ -7,8 +7,10 @@ hold no code.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
+import shutil
 import tempfile
 import warnings
 from dataclasses import asdict
@@ -19,6 +21,7 @@ import numpy as np
 import torch
 
 from mat_runtime import zoo
+from mat_sdk import files
 
 FORMAT = "mat-checkpoint"
 VERSION = 1
@@ -183,17 +186,22 @@ def to_arrays(value: Any) -> Any:
 def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:
     """Write to a temporary file beside `path`, fsync, then rename over it.
 
-    A crash at any moment leaves either the old checkpoint or the new one, never a torn file.
+    A crash at any moment leaves either the old checkpoint or the new one, never a torn file;
+    so does a full disk, reported as `files.WriteFailed` naming the path.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with files.writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a checkpoint is an ordinary file
-        with os.fdopen(fd, "wb") as handle:
-            torch.save({"format": FORMAT, "version": VERSION, **payload}, handle)
+        with files.writing(path), os.fdopen(fd, "wb") as handle:
+            try:
+                torch.save({"format": FORMAT, "version": VERSION, **payload}, handle)
+            except RuntimeError as error:  # torch's zip writer reports a failed write so
+                raise OSError(_write_errno(path), str(error)) from None
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
@@ -208,14 +216,10 @@ def save_atomic(payload: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """A small text file (JSON beside a run) written whole or not at all: a reader never sees
-    half of it."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(text)
-    os.replace(temporary, path)
-    return path
+def _write_errno(path: Path) -> int | None:
+    """Why torch's writer may have failed: no space left, when the disk is (nearly) full."""
+    free = shutil.disk_usage(path.parent).free
+    return errno.ENOSPC if free < 1 << 20 else None
 
 
 def remove_stale_temp_files(directory: str | os.PathLike) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from mat_sdk import files
 from mat_sdk.config import TrainConfig
 from mat_sdk.processes import usable_cores
 
@@ -120,6 +121,16 @@ def fault_option(purpose: str) -> Callable:
 def set_option(purpose: str = "Any TrainConfig field, e.g. lr=3e-4.") -> Callable:
     """`--set KEY=VALUE`, repeatable (see `parse_settings`)."""
     return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help=purpose)
+
+
+def trust_option() -> Callable:
+    """`--trust-env-code`: the opt-in to import a `module:function` env id read from a file."""
+    return click.option(
+        "--trust-env-code",
+        is_flag=True,
+        help="Import the module:function env id that the checkpoint records (it runs that "
+        "module's code): only for files you trust. Built-in ids need no opt-in.",
+    )
 
 
 def quiet_option() -> Callable:
@@ -287,7 +298,9 @@ def zoo(context: click.Context) -> None:
         return
     from mat_sdk.bench.zoo import cards
 
-    found = cards()
+    found, problems = cards()
+    for problem in problems:
+        click.echo(problem, err=True)
     if not found:
         from mat_runtime.zoo import zoo_dir
 
@@ -309,13 +322,25 @@ def zoo(context: click.Context) -> None:
 @click.argument("run", type=click.Path(exists=True, path_type=Path))
 @click.argument("name")
 @click.option("--command", "made_by", required=True, help="The command that trained it.")
-@click.option("--episodes", default=20, show_default=True, help="Episodes the card reports.")
+@click.option(
+    "--episodes", default=20, show_default=True, type=click.IntRange(min=1),
+    help="Episodes the card reports.",
+)  # fmt: skip
+@click.option("--force", is_flag=True, help="Replace a model of that name.")
+@trust_option()
 @user_errors
-def zoo_add(run: Path, name: str, made_by: str, episodes: int) -> None:
-    """Add RUN (a run directory or checkpoint) to the zoo as NAME, with its card."""
+def zoo_add(
+    run: Path, name: str, made_by: str, episodes: int, force: bool, trust_env_code: bool
+) -> None:
+    """Add RUN (a run directory or checkpoint) to the zoo as NAME, with its card.
+
+    NAME is letters, digits, '.', '_' and '-'. The model is exported, evaluated and written
+    beside the zoo, then moved into place: a failure leaves the zoo as it was.
+    """
     from mat_sdk.bench.zoo import add, card_text
 
-    click.echo(card_text(add(run, name, made_by, episodes)))
+    card = add(run, name, made_by, episodes, force=force, trust_env_code=trust_env_code)
+    click.echo(card_text(card))
 
 
 @main.command()
@@ -481,6 +506,7 @@ def train(
         _train_seeds(click.get_current_context(), env_ids, seeds, out_dir, eval_every, tune)
         return
     out = Path(out_dir or f"runs/{env_id.replace(':', '_')}-{algo}-s{seed}")
+    click.get_current_context().with_resource(files.RunLock(out))  # one run at a time in OUT
     ckpt = out / CHECKPOINT_NAME
     asked = _train_options(click.get_current_context().params)
     if resume:
@@ -488,7 +514,8 @@ def train(
             raise FileNotFoundError(f"nothing to resume: {ckpt} does not exist")
         given = _given_on_the_command_line(click.get_current_context(), asked)
         overrides = _resume_overrides(ckpt, given)
-        trainer = Trainer.load(ckpt, out_dir=out, **overrides)
+        # the ids typed here are the checkpoint's (`_resume_overrides` refuses others)
+        trainer = Trainer.load(ckpt, out_dir=out, trust_env_code=True, **overrides)
         changed = ", ".join(f"{k}={v}" for k, v in overrides.items())
         click.echo(
             f"resuming {ckpt} at {trainer.progress['steps']:,} steps"
@@ -542,10 +569,11 @@ def _train_options(params: dict) -> dict:
         "device": params["device"],
         "faults": parse_faults(params["faults"]),
         "ray": params["ray_address"],
+        # one policy on several counts of a family, updates in turn; always given, so a
+        # resume names every id its checkpoint records
+        "more_envs": list(env_ids[1:]),
         **parse_settings(params["settings"], TRAIN_OPTIONS),
     }
-    if len(env_ids) > 1:  # one policy on several counts of a family, updates in turn
-        asked["more_envs"] = list(env_ids[1:])
     return asked
 
 
@@ -617,6 +645,7 @@ def _train_seeds(
         )
     chosen = parse_seeds(seeds)
     out = Path(out_dir or f"runs/{env_ids[0].replace(':', '_')}-{params['algo']}")
+    context.with_resource(files.RunLock(out))  # one seed set at a time in OUT
     asked = _train_options(params)
     # tuned so that no seed waits for a core: each keeps its share of them
     share = usable_cores() // min(len(chosen), usable_cores())
@@ -696,8 +725,9 @@ def _resume_overrides(ckpt: Path, given: dict) -> dict:
     "--video", type=click.Path(dir_okay=False), help="Record the first episode to FILE.mp4."
 )
 @click.option("--seed", default=10_000, show_default=True)
+@trust_option()
 @user_errors
-def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> None:
+def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed, trust_env_code) -> None:
     """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default).
 
     Example: mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
@@ -716,6 +746,7 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> N
         deterministic=not stochastic,
         seed=seed,
         video=video,
+        trust_env_code=trust_env_code,
     )
     name = env_id or loaded.config["train"]["env"]
     click.echo(
@@ -740,6 +771,7 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed) -> N
 @click.option("--keep-optimizer", is_flag=True, help="Keep the checkpoint's Adam moments.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted fine-tuning run in OUT.")
 @set_option()
+@trust_option()
 @quiet_option()
 @user_errors
 def finetune(
@@ -753,6 +785,7 @@ def finetune(
     keep_optimizer,
     resume,
     settings,
+    trust_env_code,
     quiet,
 ) -> None:
     """Adapt a trained CHECKPOINT to a changed robot (ENV_ID, default: the same env).
@@ -797,6 +830,7 @@ def finetune(
             lr=lr,
             resume=resume,
             progress_bar=not quiet,
+            trust_env_code=trust_env_code,
             **options,
         )
     result.trainer.close()
@@ -818,8 +852,9 @@ def finetune(
     help="Bundle directory [CHECKPOINT_onnx].",
 )
 @click.option("--force", is_flag=True, help="Replace an existing bundle directory.")
+@trust_option()
 @user_errors
-def export_command(checkpoint: str, out_dir: str | None, force: bool) -> None:
+def export_command(checkpoint: str, out_dir: str | None, force: bool, trust_env_code: bool) -> None:
     """Export CHECKPOINT to an ONNX bundle for the torch-free runtime.
 
     \b
@@ -833,7 +868,7 @@ def export_command(checkpoint: str, out_dir: str | None, force: bool) -> None:
     target = (
         Path(out_dir) if out_dir else Path(checkpoint).with_name(Path(checkpoint).stem + "_onnx")
     )
-    manifest = export(checkpoint, target, force=force)
+    manifest = export(checkpoint, target, force=force, trust_env_code=trust_env_code)
     worst = max(manifest["parity"]["max_abs_diff"].values())
     counts = ", ".join(manifest["parity"]["max_abs_diff"])
     graphs = ", ".join(f"{name} (opset {g['opset']})" for name, g in manifest["graphs"].items())

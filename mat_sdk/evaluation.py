@@ -24,6 +24,7 @@ class LoadedPolicy:
     policy: Policy
     obs_norm: RunningMeanStd | None
     config: dict[str, Any]
+    source: str = "the checkpoint"  # where the policy came from, for messages
 
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> LoadedPolicy:
@@ -35,7 +36,7 @@ class LoadedPolicy:
         if payload["config"]["train"]["normalize_obs"]:
             norm = RunningMeanStd(policy.cfg.obs_dim)
             norm.load_state_dict(payload["obs_norm"])
-        return cls(policy, norm, payload["config"])
+        return cls(policy, norm, payload["config"], str(path))
 
     def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):
         """Actions for raw observations of `team` (an env with its agents and sizes): an
@@ -114,10 +115,16 @@ def evaluate(
     deterministic: bool = True,
     seed: int = 10_000,
     video: str | Path | None = None,
+    trust_env_code: bool = False,
     **env_options: Any,
 ) -> list[float]:
-    """Returns of `episodes` full episodes, one per env copy, each copy's first episode."""
+    """Returns of `episodes` full episodes, one per env copy, each copy's first episode.
+
+    Without `env_id`, the env the policy was trained on; a `module:function` id that the
+    checkpoint records is imported only with `trust_env_code=True`."""
     train = loaded.config["train"]
+    if env_id is None:
+        envs.check_trusted([train["env"]], trust_env_code, loaded.source)
     env_id = env_id or train["env"]
     faults = train["faults"] if faults is None else faults
     options = {**train["env_options"], **env_options}

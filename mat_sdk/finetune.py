@@ -13,6 +13,7 @@ PPO continues from it (`Trainer.from_pretrained`), logging and checkpointing lik
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from mat_sdk import checkpoint as checkpoints
+from mat_sdk import envs, files
 from mat_sdk.trainer import CHECKPOINT_NAME, Trainer
 
 SUMMARY_NAME = "finetune.json"
@@ -53,6 +56,7 @@ def finetune(
     resume: bool = False,
     callback: Callable[[Trainer, dict], bool | None] | None = None,
     progress_bar: bool = True,
+    trust_env_code: bool = False,
     **options: Any,
 ) -> FinetuneResult:
     """Zero-shot evaluation, `steps` env steps of PPO from the pre-trained weights, evaluation.
@@ -61,31 +65,53 @@ def finetune(
     TrainConfig fields (num_envs, seed, ...). With `resume=True`, continues the run in
     `out_dir` after an interruption, as it was started (`options` then may only say how to
     run: device, workers, update_workers, checkpoint_every). Writes OUT/finetune.json with
-    both evaluations.
+    both evaluations. Without `env`, a `module:function` env id that the checkpoint records
+    is imported only with `trust_env_code=True`.
     """
     out = Path(out_dir) if out_dir is not None else None
-    summary_path = out / SUMMARY_NAME if out else None
-    if resume:
-        if out is None or not (out / CHECKPOINT_NAME).exists():
-            raise FileNotFoundError(f"nothing to resume: {out}/{CHECKPOINT_NAME} does not exist")
-        trainer = Trainer.load(out / CHECKPOINT_NAME, out_dir=out, **options)
-        zero_shot = json.loads(summary_path.read_text())["zero_shot"]["returns"]
-    else:
-        if out is not None and (out / CHECKPOINT_NAME).exists():
-            raise FileExistsError(
-                f"{out / CHECKPOINT_NAME} exists; resume that run or choose another out_dir"
-            )
-        trainer = Trainer.from_pretrained(
-            checkpoint, env, faults, reset_optimizer, lr, out_dir=out, **options
-        )
-        zero_shot = trainer.evaluate(eval_episodes)
-        if summary_path:
-            _write_summary(summary_path, trainer, checkpoint, zero_shot, None)
-    trainer.learn(steps, callback=callback, progress_bar=progress_bar)
-    final = trainer.evaluate(eval_episodes)
-    if summary_path:
-        _write_summary(summary_path, trainer, checkpoint, zero_shot, final)
+    with files.RunLock(out) if out else contextlib.nullcontext():
+        if resume:
+            trainer, zero_shot = _resumed(out, env, trust_env_code, options)
+        else:
+            trainer = _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code,
+                               options)  # fmt: skip
+            zero_shot = trainer.evaluate(eval_episodes)
+            if out:
+                _write_summary(out / SUMMARY_NAME, trainer, checkpoint, zero_shot, None)
+        trainer.learn(steps, callback=callback, progress_bar=progress_bar)
+        final = trainer.evaluate(eval_episodes)
+        if out:
+            _write_summary(out / SUMMARY_NAME, trainer, checkpoint, zero_shot, final)
     return FinetuneResult(trainer, zero_shot, final)
+
+
+def _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code, options) -> Trainer:
+    if out is not None and (out / CHECKPOINT_NAME).exists():
+        raise FileExistsError(
+            f"{out / CHECKPOINT_NAME} exists; resume that run or choose another out_dir"
+        )
+    return Trainer.from_pretrained(
+        checkpoint, env, faults, reset_optimizer, lr, out_dir=out,
+        trust_env_code=trust_env_code, **options,
+    )  # fmt: skip
+
+
+def _resumed(out, env, trust_env_code, options) -> tuple[Trainer, list[float]]:
+    """The interrupted run in `out`, as it was started, and its zero-shot returns."""
+    resumed = None if out is None else out / CHECKPOINT_NAME
+    if resumed is None or not resumed.exists():
+        raise FileNotFoundError(f"nothing to resume: {out}/{CHECKPOINT_NAME} does not exist")
+    if env is not None:  # the run goes on on the env it records
+        recorded = checkpoints.load(resumed)["config"]["train"]["env"]
+        if envs.id_of(env) != recorded:
+            raise ValueError(
+                f"{resumed} fine-tunes on {recorded!r}, not {env!r}; resume it without "
+                "another env, or start a new run with another out_dir"
+            )
+    trust = trust_env_code or env is not None  # the user named this env
+    trainer = Trainer.load(resumed, out_dir=out, trust_env_code=trust, **options)
+    zero_shot = json.loads((out / SUMMARY_NAME).read_text())["zero_shot"]["returns"]
+    return trainer, zero_shot
 
 
 def _write_summary(path: Path, trainer: Trainer, checkpoint, zero_shot, final) -> None:
@@ -104,7 +130,4 @@ def _write_summary(path: Path, trainer: Trainer, checkpoint, zero_shot, final) -
         "zero_shot": stats(zero_shot),
         "final": stats(final),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    tmp.replace(path)
+    files.write_text_atomic(path, json.dumps(summary, indent=2) + "\n")

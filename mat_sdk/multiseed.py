@@ -53,9 +53,9 @@ def _steps_done(run: Path) -> int:
     """Env steps in a seed's metrics.csv so far (0 before its first update)."""
     try:
         lines = (run / "metrics.csv").read_text().splitlines()
-    except OSError:
-        return 0
-    return int(lines[-1].split(",")[0]) if len(lines) > 1 else 0
+        return int(lines[-1].split(",")[0]) if len(lines) > 1 else 0
+    except (OSError, UnicodeDecodeError, ValueError):  # not written yet, or not ours: the
+        return 0  # seed's own run sets a foreign file aside
 
 
 def seed_command(train_args: list[str], seed: int, run: Path) -> list[str]:
@@ -65,7 +65,19 @@ def seed_command(train_args: list[str], seed: int, run: Path) -> list[str]:
     if (run / "checkpoint.pt").exists():
         command.append("--resume")
     parent = ["--parent", str(os.getpid())]
-    return [sys.executable, "-m", "mat_sdk.multiseed", *parent, "train", *command]
+    return [*python("mat_sdk.multiseed:seed_main"), *parent, "train", *command]
+
+
+def python(entry: str) -> list[str]:
+    """A command line that runs `module:function` in a new interpreter whose import path is
+    this one's: `python -m` or `-c` would put the working directory first, so a `random.py`
+    lying there would be imported in place of the standard library's."""
+    module, _, function = entry.partition(":")
+    code = (
+        f"import sys; sys.path.pop(0); sys.argv[0] = 'mat'; "
+        f"from {module} import {function}; {function}()"
+    )
+    return [sys.executable, "-c", code]
 
 
 class _LocalSeed:
@@ -203,12 +215,16 @@ def _die_with_parent(parent: int, argv: list[str]) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # the parent died before the signal was set
         sys.exit(f"the process that started this seed ({parent}) is gone")
-    os.execv(sys.executable, [sys.executable, "-m", "mat_sdk", *argv])
+    command = python("mat_sdk.cli:main")
+    os.execv(command[0], [*command, *argv])
 
 
 PR_SET_PDEATHSIG = 1
 
-if __name__ == "__main__":
+
+def seed_main() -> None:
+    """The seed child's entry point: `--parent PID COMMAND...` (see `seed_command`)."""
     if len(sys.argv) < 3 or sys.argv[1] != "--parent":
-        sys.exit("usage: python -m mat_sdk.multiseed --parent PID COMMAND...")
+        sys.exit("usage: python -c 'from mat_sdk.multiseed import seed_main; seed_main()' "
+                 "--parent PID COMMAND...")  # fmt: skip
     _die_with_parent(int(sys.argv[2]), sys.argv[3:])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ class RunLog:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         remove_stale_temp_files(self.out_dir)
         self.path = self.out_dir / METRICS_NAME
+        _set_aside_if_foreign(self.path)
         self._columns, rows, intact = _complete_rows(self.path)
         kept = [r for r in rows if int(r["updates"]) <= resume_after]
         if self._columns is None and not intact:  # only a torn header: nothing to keep
@@ -119,6 +121,35 @@ class ProgressBar:
 
     def close(self) -> None:
         self._bar.close()
+
+
+class ForeignMetrics(UserWarning):
+    """A run directory's metrics.csv was not one this SDK writes; it was moved aside."""
+
+
+def _set_aside_if_foreign(path: Path) -> None:
+    """A metrics file that is not ours (binary, another program's columns) is renamed to
+    `metrics.csv.unreadable[.N]`, with a warning: a run starts a new one and loses nothing."""
+    try:
+        header = next(csv.reader([path.read_text().partition("\n")[0]]), [])
+    except FileNotFoundError:
+        return
+    except (OSError, UnicodeDecodeError, csv.Error):
+        header = []
+    if not path.stat().st_size or {"steps", "updates"} <= set(header):
+        return
+    aside = path.with_name(f"{path.name}.unreadable")
+    number = 1
+    while aside.exists():
+        aside = path.with_name(f"{path.name}.unreadable.{number}")
+        number += 1
+    path.rename(aside)
+    warnings.warn(
+        f"{path} is not a metrics file of this SDK (unreadable, or without steps and updates "
+        f"columns); moved it to {aside} and started a new one",
+        ForeignMetrics,
+        stacklevel=3,
+    )
 
 
 def _complete_rows(path: Path) -> tuple[list[str] | None, list[dict], bool]:

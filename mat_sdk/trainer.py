@@ -12,6 +12,7 @@ The defaults are the paper's MA-MuJoCo recipe (docs/ALGORITHM.md); MAPPO gets it
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -21,7 +22,7 @@ from typing import Any
 
 import torch
 
-from mat_sdk import checkpoint, envs
+from mat_sdk import checkpoint, envs, files
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
@@ -145,9 +146,15 @@ class Trainer:
 
         `callback(trainer, metrics)` runs after each update; returning False stops training.
         Checkpoints go to `out_dir/checkpoint.pt` every `checkpoint_every` updates and at the end.
+        `out_dir` is locked meanwhile (`files.RunLock`): another run there is refused.
         """
         cfg = self.config
         cfg.check_batching()  # refused before the first rollout
+        with files.RunLock(self.out_dir) if self.out_dir else contextlib.nullcontext():
+            return self._learn(total_steps, callback, progress_bar)
+
+    def _learn(self, total_steps: int, callback, progress_bar: bool) -> Trainer:
+        cfg = self.config
         per_update = cfg.num_envs * cfg.rollout_length
         self.gradients.start()  # the update workers start up during the first rollout
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
@@ -250,13 +257,22 @@ class Trainer:
         return checkpoint.save_atomic(self.state_payload(), path)
 
     @classmethod
-    def load(cls, path: str | Path, out_dir: str | Path | None = None, **overrides: Any) -> Trainer:
+    def load(
+        cls,
+        path: str | Path,
+        out_dir: str | Path | None = None,
+        trust_env_code: bool = False,
+        **overrides: Any,
+    ) -> Trainer:
         """Rebuild a trainer from a checkpoint; `learn` then continues exactly where it stopped.
 
         Overrides may change how to run (device, workers, out_dir), not what is trained.
+        A `module:function` env id the checkpoint records is imported only with
+        `trust_env_code=True` (`envs.check_trusted`): a checkpoint from elsewhere runs no code.
         """
         payload = checkpoint.load(path)
         train = checkpoint.training_options(payload, path, overrides)
+        envs.check_trusted([train["env"], *train.get("more_envs", [])], trust_env_code, str(path))
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
         try:
             checkpoint.restore_training(trainer, payload, path)
@@ -274,6 +290,7 @@ class Trainer:
         reset_optimizer: bool = True,
         lr: float | None = None,
         out_dir: str | Path | None = None,
+        trust_env_code: bool = False,
         **options: Any,
     ) -> Trainer:
         """A new run that starts from a trained policy, for a changed robot (few-shot).
@@ -286,6 +303,8 @@ class Trainer:
         The changed robot must give the same observation and action sizes (a removed agent
         keeps its team-mates' one-hot ids, so those stay the same; `swimmer-N` has no ids, so
         any length works); MAPPO's centralised critic also fixes the agent count.
+        Without `env`, a `module:function` id the checkpoint records is imported only with
+        `trust_env_code=True`.
         """
         from mat_sdk.evaluation import check_compatible
 
@@ -299,6 +318,8 @@ class Trainer:
         if lr is not None:
             train["lr"] = lr
         algo, trained_env = train.pop("algo"), train.pop("env")
+        if env is None:
+            envs.check_trusted([trained_env], trust_env_code, str(checkpoint_path))
         env = trained_env if env is None else envs.id_of(env)
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
@@ -313,7 +334,9 @@ class Trainer:
         """Returns of full episodes of the current policy on this trainer's (changed) robot."""
         from mat_sdk.evaluation import evaluate
 
-        return evaluate(self._as_loaded(), episodes, deterministic=deterministic)
+        # this run's own env: built already, nothing new to trust
+        loaded = self._as_loaded()
+        return evaluate(loaded, episodes, deterministic=deterministic, trust_env_code=True)
 
     def _as_loaded(self):
         """This trainer's policy as `mat eval` sees a checkpoint: weights + obs normaliser."""

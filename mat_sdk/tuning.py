@@ -26,8 +26,8 @@ from typing import Any
 
 import torch
 
-from mat_sdk.checkpoint import write_text_atomic
 from mat_sdk.config import TrainConfig
+from mat_sdk.files import write_text_atomic
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.rollout import RolloutCollector

@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 
 PREFIX = "zoo:"
-_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 
 def zoo_dir() -> Path:
@@ -24,7 +24,10 @@ def zoo_dir() -> Path:
 def models() -> list[str]:
     """The names of the zoo's models (directories with a card)."""
     root = zoo_dir()
-    return sorted(p.parent.name for p in root.glob("*/card.json")) if root.is_dir() else []
+    if not root.is_dir():
+        return []
+    names = (p.parent.name for p in root.glob("*/card.json"))
+    return sorted(name for name in names if NAME.fullmatch(name))  # not `zoo add`'s staging
 
 
 def locate(path: str | os.PathLike, part: str) -> Path:
@@ -34,7 +37,7 @@ def locate(path: str | os.PathLike, part: str) -> Path:
     if not text.startswith(PREFIX):
         return Path(path)
     name = text[len(PREFIX) :]
-    if not _NAME.fullmatch(name) or ".." in name:
+    if not NAME.fullmatch(name) or ".." in name:
         raise ValueError(f"{text!r}: a zoo name is letters, digits, '.', '_' and '-'")
     model = zoo_dir() / name
     if not (model / "card.json").is_file():

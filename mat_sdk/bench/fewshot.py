@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from mat_sdk import checkpoint as checkpoints
-from mat_sdk.checkpoint import write_text_atomic
+from mat_sdk.files import write_text_atomic
 from mat_sdk.finetune import finetune
 from mat_sdk.protocol import interval_estimates
 from mat_sdk.trainer import Trainer

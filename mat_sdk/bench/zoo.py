@@ -15,6 +15,7 @@ import datetime
 import json
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +23,8 @@ import numpy as np
 from scipy import stats
 
 from mat_export import export
-from mat_runtime.zoo import models, zoo_dir
-from mat_sdk import checkpoint
+from mat_runtime.zoo import NAME, models, zoo_dir
+from mat_sdk import checkpoint, envs, files
 from mat_sdk.bench.seeds import EVALUATION_SEED, random_team_return
 from mat_sdk.evaluation import LoadedPolicy, evaluate
 
@@ -49,45 +50,78 @@ def _interval(returns: list[float]) -> list[float]:
     return [float(result.confidence_interval.low), float(result.confidence_interval.high)]
 
 
-def add(run: Path, name: str, command: str, episodes: int = 20) -> dict[str, Any]:
-    """Copy `run`'s checkpoint into the zoo as `name`, export it, evaluate it, write its card."""
+def add(
+    run: Path,
+    name: str,
+    command: str,
+    episodes: int = 20,
+    force: bool = False,
+    trust_env_code: bool = False,
+) -> dict[str, Any]:
+    """Copy `run`'s checkpoint into the zoo as `name`, export it, evaluate it, write its card.
+
+    Everything is built in a directory beside the zoo's models and moved into place at the
+    end, so a failure leaves the zoo as it was; a model of that name is replaced only with
+    `force`. A `module:function` env id that the checkpoint records is imported (to export
+    and evaluate it) only with `trust_env_code=True`."""
+    if not isinstance(name, str) or not NAME.fullmatch(name) or ".." in name:
+        raise ValueError(
+            f"zoo name {name!r}: use letters, digits, '.', '_' and '-' (starting with a letter "
+            "or digit), as in zoo:NAME"
+        )
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     source = run / "checkpoint.pt" if run.is_dir() else run
     payload = checkpoint.load(source)
-    target = zoo_dir() / name
-    target.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(source, target / "checkpoint.pt")
-    export(target / "checkpoint.pt", target / "onnx", force=True)
-    loaded = LoadedPolicy.from_checkpoint(target / "checkpoint.pt")
-    returns = evaluate(loaded, episodes, seed=EVALUATION_SEED)
     train = payload["config"]["train"]
     env_id = train["env"]
-    options = train.get("env_options") or {}
-    random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
-    card = {
-        "name": name,
-        "env_id": env_id,
-        "trained_on": [env_id, *train.get("more_envs", [])],
-        "env_options": options,
-        "faults": train.get("faults") or {},
-        "algo": train["algo"],
-        "steps": payload["progress"]["steps"],
-        "seed": train["seed"],
-        "return": {
-            "mean": float(np.mean(returns)),
-            "ci95": _interval(returns),
-            "std": float(np.std(returns)),
-            "episodes": episodes,
-            "returns": returns,
-            "evaluation_seed": EVALUATION_SEED,
-            "command": f"mat eval zoo:{name} --episodes {episodes}",
-        },
-        "random_team_return": random,
-        "made_by": command,
-        "commit": _commit(),
-        "date": datetime.date.today().isoformat(),
-    }
-    (target / "card.json").write_text(json.dumps(card, indent=2) + "\n")
-    (target / "card.md").write_text(card_text(card))
+    envs.check_trusted([env_id], trust_env_code, str(source))
+    target = zoo_dir() / name
+    if target.exists() and not force:
+        raise FileExistsError(
+            f"the zoo has a model {name!r} ({target}); pass --force (force=True) to replace it"
+        )
+    with files.writing(zoo_dir()):
+        zoo_dir().mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=zoo_dir()))
+    try:
+        with files.writing(target):
+            shutil.copyfile(source, staging / "checkpoint.pt")
+        export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=True)
+        loaded = LoadedPolicy.from_checkpoint(staging / "checkpoint.pt")
+        returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=True)
+        options = train.get("env_options") or {}
+        random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
+        card = {
+            "name": name,
+            "env_id": env_id,
+            "trained_on": [env_id, *train.get("more_envs", [])],
+            "env_options": options,
+            "faults": train.get("faults") or {},
+            "algo": train["algo"],
+            "steps": payload["progress"]["steps"],
+            "seed": train["seed"],
+            "return": {
+                "mean": float(np.mean(returns)),
+                "ci95": _interval(returns),
+                "std": float(np.std(returns)),
+                "episodes": episodes,
+                "returns": returns,
+                "evaluation_seed": EVALUATION_SEED,
+                "command": f"mat eval zoo:{name} --episodes {episodes}",
+            },
+            "random_team_return": random,
+            "made_by": command,
+            "commit": _commit(),
+            "date": datetime.date.today().isoformat(),
+        }
+        files.write_text_atomic(staging / "card.json", json.dumps(card, indent=2) + "\n")
+        files.write_text_atomic(staging / "card.md", card_text(card))
+        with files.writing(target):
+            staging.chmod(0o755)  # mkdtemp makes 0700
+            files.replace_directory(staging, target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return card
 
 
@@ -107,5 +141,45 @@ def card_text(card: dict[str, Any]) -> str:
     )
 
 
-def cards() -> list[dict[str, Any]]:
-    return [json.loads((zoo_dir() / name / "card.json").read_text()) for name in models()]
+CARD_FIELDS = {
+    "name": str,
+    "env_id": str,
+    "algo": str,
+    "steps": int,
+    "seed": int,
+    "return": dict,
+    "random_team_return": (int, float),
+}
+RETURN_FIELDS = {"mean": (int, float), "ci95": list}
+
+
+def cards() -> tuple[list[dict[str, Any]], list[str]]:
+    """The zoo's cards, and one line per card that cannot be read (so one broken card does
+    not hide the others)."""
+    found, problems = [], []
+    for name in models():
+        path = zoo_dir() / name / "card.json"
+        try:
+            card = json.loads(path.read_text())
+            problem = _card_problem(card)
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as error:
+            problem = f"cannot be read ({type(error).__name__})"
+        if problem:
+            problems.append(f"{path}: {problem}; skipped (`mat zoo add --force` remakes it)")
+        else:
+            found.append(card)
+    return found, problems
+
+
+def _card_problem(card: Any) -> str | None:
+    if not isinstance(card, dict):
+        return f"is a {type(card).__name__}, not a card"
+    for fields, within in ((CARD_FIELDS, card), (RETURN_FIELDS, card.get("return", {}))):
+        for key, kind in fields.items():
+            value = within.get(key)
+            if isinstance(value, bool) or not isinstance(value, kind):
+                return f"{key} is missing or not a {getattr(kind, '__name__', 'number')}"
+    low_high = card["return"]["ci95"]
+    if len(low_high) != 2 or not all(isinstance(v, int | float) for v in low_high):
+        return "return.ci95 is not two numbers"
+    return None

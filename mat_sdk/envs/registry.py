@@ -9,13 +9,20 @@ An id is, in the order tried:
 - `module:function` (Gymnasium's convention): the function, called with no arguments,
   returns what `from_dm_control`, `from_mjcf` or `from_pettingzoo` return.
 Checkpoints and bundles record the id, so every tool rebuilds the same env from it.
+
+The trust rule: an id read from a file (a checkpoint, a manifest, a zoo card) is data, not
+code. A `module:function` id from a file is imported only when the user opts in for that run
+(`check_trusted`); built-in, `mamujoco:`, registered and installed ids need no opt-in, since
+they run only code that is already installed. Even then, an id must name a plain Python
+function outside the standard library, called with no arguments, that returns a spec.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
-from collections.abc import Callable, Mapping
+import sys
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
@@ -69,14 +76,49 @@ def id_of(env: str | EnvSpec | Callable[[], EnvSpec]) -> str:
     return register(env.env_id, env)
 
 
+class UntrustedEnvError(ValueError):
+    """An env id read from a file names code to import, and the user has not opted in."""
+
+
+def imports_code(env_id: str) -> bool:
+    """Whether resolving `env_id` would import a module that no installed package declares:
+    a `module:function` id that is neither built in, registered nor installed."""
+    return (
+        isinstance(env_id, str)
+        and ":" in env_id
+        and env_id not in _REGISTERED
+        and not env_id.startswith(MAMUJOCO)
+        and not env_id.startswith("coordination-")
+        and spec_for(env_id) is None
+        and env_id not in _entry_points()
+    )
+
+
+def check_trusted(env_ids: Iterable[str], trusted: bool, source: str) -> None:
+    """Refuse the `module:function` ids that were read from `source` (a file), unless the
+    user opted in (`trusted`): loading a downloaded file must never run its code."""
+    if trusted:
+        return
+    for env_id in env_ids:
+        if imports_code(env_id):
+            module = env_id.partition(":")[0]
+            raise UntrustedEnvError(
+                f"{source} records the env id {env_id!r}, which would import and run code from "
+                f"module {module!r}; an id read from a file runs no code unless you opt in: "
+                "pass --trust-env-code (trust_env_code=True) if you trust that file, or name "
+                "the env yourself"
+            )
+
+
 def resolve(env_id: str | EnvSpec) -> EnvSpec:
-    """The spec an id names, or ValueError saying what was looked for."""
+    """The spec an id names, or ValueError saying what was looked for. A `module:function`
+    id is imported here: callers that read the id from a file `check_trusted` it first."""
     if isinstance(env_id, EnvSpec):
         return env_id
     if not isinstance(env_id, str):
         raise ValueError(f"an env is an id string or an env spec, got {env_id!r}")
     if env_id in _REGISTERED:
-        return _named(_REGISTERED[env_id], env_id)
+        return _named(_REGISTERED[env_id], env_id, imported=False)
     robot = spec_for(env_id)
     if robot is not None:
         return robot
@@ -116,6 +158,12 @@ def _entry_points() -> dict[str, metadata.EntryPoint]:
 
 def _imported(env_id: str):
     module_name, _, attribute = env_id.partition(":")
+    if module_name.partition(".")[0] in sys.stdlib_module_names:
+        raise ValueError(
+            f"env id {env_id!r} names the standard library module {module_name!r}; an env id "
+            "names a function of yours that returns from_mjcf / from_dm_control / "
+            "from_pettingzoo"
+        )
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as error:
@@ -134,8 +182,15 @@ def _imported(env_id: str):
     return target
 
 
-def _named(source: Any, env_id: str) -> EnvSpec:
-    """`source` (a spec, or a function returning one) as the spec of `env_id`."""
+def _named(source: Any, env_id: str, imported: bool = True) -> EnvSpec:
+    """`source` (a spec, or a function returning one) as the spec of `env_id`; an `imported`
+    source must be a plain Python function (not a builtin such as `os.abort`, nor a class)."""
+    if imported and not isinstance(source, EnvSpec) and not inspect.isfunction(source):
+        raise ValueError(
+            f"{env_id} names a {type(source).__name__}, not a Python function; it must name a "
+            "function of no arguments that returns what mat_sdk.envs.from_dm_control, from_mjcf "
+            "or from_pettingzoo return"
+        )
     if callable(source) and not isinstance(source, EnvSpec):
         try:
             inspect.signature(source).bind()
