@@ -27,3 +27,15 @@ def spread() -> envs.PettingZooSpec:
 def spread_continuous() -> envs.PettingZooSpec:
     """simple_spread with continuous actions (Box(0, 1, (5,)) per agent)."""
     return envs.from_pettingzoo(partial(_simple_spread, continuous=True), team_reward="mean")
+
+
+def _speaker_listener(seed: int | None):
+    from mpe2 import simple_speaker_listener_v4
+
+    return simple_speaker_listener_v4.parallel_env(max_cycles=CYCLES)
+
+
+def speaker_listener() -> envs.PettingZooSpec:
+    """simple_speaker_listener: a speaker with 3 choices, a listener with 5 (padded to 5; the
+    speaker's padding choices are never available)."""
+    return envs.from_pettingzoo(_speaker_listener, team_reward="mean")

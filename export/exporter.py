@@ -96,6 +96,9 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
     manifest = _manifest(payload, cfg, graphs, checkpoint_path)
     if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
         manifest["wiring"] = {**team.wiring(), "normalizer": NORMALIZER_PLACE}
+    manifest["agents"]["action_widths"] = [int(w) for w in team.action_widths]
+    if cfg.action_type == "discrete":  # an agent never takes its padding choices
+        manifest["agents"]["choices"] = [int(c) for c in team.choices]
     folded = (
         normalizer.mean.numpy(),
         normalizer.scale.numpy(),

@@ -290,6 +290,9 @@ def _check_structure(path: Path, payload: dict[str, Any]) -> None:
         fail("config.model", f"is invalid ({error})")
     if not isinstance(config["env"].get("id"), str):
         fail("config.env.id", f"must be a string, got {config['env'].get('id')!r}")
+    if config["env"]["id"] != config["train"].get("env"):
+        fail("config.env.id", f"differs from config.train.env ({config['train'].get('env')!r})")
+    _check_train_config(config["train"], fail)
     weights = payload.get("model")
     if not isinstance(weights, dict) or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in weights.items()
@@ -308,6 +311,23 @@ def _check_structure(path: Path, payload: dict[str, Any]) -> None:
         isinstance(progress.get(k), int) and progress[k] >= 0 for k in ("steps", "updates")
     ):
         fail("progress", f"must hold steps and updates counts, got {progress!r}")
+
+
+def _check_train_config(train: dict[str, Any], fail) -> None:
+    """Every field a tool reads from `config.train` has its type and range (`TrainConfig`'s
+    own checks); fields newer than the checkpoint take their defaults."""
+    from dataclasses import fields
+
+    from mat_sdk.config import TrainConfig
+
+    known = {f.name for f in fields(TrainConfig)}
+    unknown = sorted(set(train) - known, key=str)
+    if unknown:
+        fail("config.train", f"has fields this SDK does not know ({unknown[:5]})")
+    try:
+        TrainConfig(**train)
+    except (ValueError, TypeError) as error:
+        fail("config.train", f"is invalid ({error})")
 
 
 def load_weights(module: torch.nn.Module, state: dict[str, Any], path: str | os.PathLike) -> None:

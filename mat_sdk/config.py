@@ -121,14 +121,20 @@ class TrainConfig:
                 continue
             if f.type == "bool" and not isinstance(value, bool):
                 raise ValueError(f"{f.name} must be true or false, got {value!r}")
-            if f.type.startswith("dict") and not isinstance(value, dict):
-                raise ValueError(f"{f.name} must be a mapping such as {{...}}, got {value!r}")
+            if f.type.startswith("dict") and not (
+                isinstance(value, dict) and all(isinstance(k, str) for k in value)
+            ):
+                raise ValueError(
+                    f"{f.name} must be a mapping with string keys such as {{...}}, got {value!r}"
+                )
             if f.type.startswith("str") and not isinstance(value, str):
                 raise ValueError(f"{f.name} must be a string, got {value!r}")
             if f.type.startswith("list") and not (
                 isinstance(value, list) and all(isinstance(v, str) for v in value)
             ):
                 raise ValueError(f"{f.name} must be a list of strings, got {value!r}")
+        if not all(isinstance(mode, str) for mode in self.faults.values()):
+            raise ValueError(f"faults must map names to 'zero' or 'remove', got {self.faults!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:
             raise ValueError(
                 f"rollout_backend must be one of {', '.join(ROLLOUT_BACKENDS)}, "

@@ -14,6 +14,8 @@ layout, which `mat report` (and marl-eval itself) reads:
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -101,33 +103,109 @@ def _index(key: str) -> int:
 
 
 def read_evaluations(paths: list[Path]) -> dict[str, Any]:
-    """Every `evaluations.json` under `paths` (files or directories), merged; a seed found
-    twice is refused, naming both files."""
+    """Every `evaluations.json` under `paths` (files or directories), checked and merged; a
+    seed found twice is refused, naming both files. A file that is not of marl-eval's layout,
+    holds a non-finite or missing return, a name that is not a plain name (a path, Markdown),
+    or lies outside the directory it was found under (a symlink) is refused, naming it."""
     merged: dict[str, Any] = {}
     where: dict[tuple, Path] = {}
-    files = [
-        p for path in paths for p in ([path] if path.is_file() else path.rglob(EVALUATIONS_NAME))
-    ]
+    files = []
+    for path in paths:
+        if path.is_file():
+            files.append(path)
+            continue
+        root = path.resolve()
+        for found in path.rglob(EVALUATIONS_NAME):
+            if not found.resolve().is_relative_to(root):
+                raise ValueError(f"{found}: resolves outside {path} ({found.resolve()}); not read")
+            files.append(found)
     if not files:
         raise FileNotFoundError(
             f"no {EVALUATIONS_NAME} under {', '.join(map(str, paths))}; train with "
             "--eval-every (on by default for runs of 100,000 steps or more)"
         )
     for file in sorted(files):
-        for env, tasks in json.loads(file.read_text()).items():
-            for task, algos in tasks.items():
-                for algo, seeds in algos.items():
-                    for seed, run in seeds.items():
-                        key = (env, task, algo, seed)
-                        if key in where:
-                            raise ValueError(
-                                f"{env}/{task}/{algo}/{seed} is in both {where[key]} and {file}"
-                            )
-                        where[key] = file
-                        merged.setdefault(env, {}).setdefault(task, {}).setdefault(algo, {})[
-                            seed
-                        ] = run
+        for (env, task, algo, seed), run in _runs(file):
+            key = (env, task, algo, seed)
+            if key in where:
+                raise ValueError(f"{env}/{task}/{algo}/{seed} is in both {where[key]} and {file}")
+            where[key] = file
+            merged.setdefault(env, {}).setdefault(task, {}).setdefault(algo, {})[seed] = run
     return merged
+
+
+# env, task, algorithm and seed names: they become file names and Markdown table cells
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,99}")
+STEP = re.compile(r"step_(\d{1,9})")
+
+
+def _runs(file: Path) -> list[tuple[tuple[str, str, str, str], dict[str, Any]]]:
+    """The seeds' runs of one evaluations file, each checked, or ValueError naming the file
+    and the first field that is wrong."""
+
+    def fail(field: str, problem: str) -> None:
+        raise ValueError(f"{file}: {field} {problem}; is it an evaluations.json of `mat train`?")
+
+    def refuse_constant(name: str) -> None:
+        fail("a return", f"is {name}; returns must be finite numbers")
+
+    try:
+        data = json.loads(file.read_text(), parse_constant=refuse_constant)
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        fail("the file", f"is not JSON ({type(error).__name__})")
+    except RecursionError:
+        fail("the file", "is nested too deeply")
+    runs = []
+    for path, value in _levels(data, ("env", "task", "algorithm", "seed"), fail):
+        field = "/".join(path)
+        steps = [key for key in value if STEP.fullmatch(key)]
+        unknown = set(value) - set(steps) - {"absolute_metrics"}
+        if unknown:
+            fail(
+                field,
+                f"has entries that are neither step_K nor absolute_metrics ({sorted(unknown)[:3]})",
+            )
+        if not steps and "absolute_metrics" not in value:
+            fail(field, "has no evaluation")
+        for key in [*steps, *(["absolute_metrics"] if "absolute_metrics" in value else [])]:
+            entry = value[key]
+            if not isinstance(entry, dict):
+                fail(f"{field}/{key}", "is not an object")
+            returns = entry.get("return")
+            if (
+                not isinstance(returns, list)
+                or not returns
+                or not all(
+                    isinstance(r, int | float) and not isinstance(r, bool) and math.isfinite(r)
+                    for r in returns
+                )
+            ):
+                fail(f"{field}/{key}/return", "must be a non-empty list of finite numbers")
+            count = entry.get("step_count")
+            if key != "absolute_metrics" and (
+                isinstance(count, bool) or not isinstance(count, int) or count < 0
+            ):
+                fail(f"{field}/{key}/step_count", f"must be an integer >= 0, got {count!r}")
+        runs.append((path, value))
+    return runs
+
+
+def _levels(data: Any, levels: tuple[str, ...], fail, path: tuple[str, ...] = ()):
+    """(names, value) at the depth of `levels` in nested objects whose keys are plain names."""
+    if not isinstance(data, dict):
+        fail("/".join(path) or "the file", f"must be an object of {levels[0]} names")
+    if not data:
+        fail("/".join(path) or "the file", f"names no {levels[0]}")
+    for name, value in data.items():
+        if not NAME.fullmatch(name):
+            fail("/".join(path) or "the file", f"has the {levels[0]} name {name[:40]!r}, not a "
+                 "plain name (letters, digits, '_', '.', '+', '-')")  # fmt: skip
+        if len(levels) == 1:
+            if not isinstance(value, dict):
+                fail("/".join((*path, name)), "must be an object of evaluations")
+            yield (*path, name), value
+        else:
+            yield from _levels(value, levels[1:], fail, (*path, name))
 
 
 def interval_estimates(

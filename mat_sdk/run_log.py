@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mat_sdk import files
 from mat_sdk.checkpoint import remove_stale_temp_files
 
 METRICS_NAME = "metrics.csv"
@@ -51,6 +52,10 @@ class RunLog:
         os.replace(tmp, self.path)
 
     def write(self, metrics: dict) -> None:
+        with files.writing(self.path):
+            self._write(metrics)
+
+    def _write(self, metrics: dict) -> None:
         if self._writer is None:
             new_file = self._columns is None
             self._columns = self._columns or list(metrics)
@@ -64,9 +69,10 @@ class RunLog:
                 self._tensorboard.add_scalar(key, value, metrics["steps"])
 
     def close(self) -> None:
-        self._file.close()
-        self._tensorboard.close()
-        plot_curve(self.path, self.out_dir / CURVE_NAME)
+        with files.writing(self.out_dir):
+            self._file.close()
+            self._tensorboard.close()
+            plot_curve(self.path, self.out_dir / CURVE_NAME)
 
 
 def update_metrics(

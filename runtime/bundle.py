@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,13 +28,32 @@ class Bundle:
     graphs: dict[str, bytes]
 
 
+class _Changed(BundleError):
+    """A file vanished or its hash changed while it was read: perhaps `mat export --force`
+    replaced the bundle meanwhile."""
+
+
+TRIES = 3  # reads of a bundle that changes under the reader
+
+
 def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle:
     """The manifest, checked, and the graphs `select(manifest)` names, each checked by sha256.
-    `path` may name a zoo model: `zoo:NAME`."""
+    `path` may name a zoo model: `zoo:NAME`. A bundle replaced while it is read (`mat export
+    --force`) is read again, up to `TRIES` times."""
     try:
         path = locate(path, "onnx")
     except (ValueError, FileNotFoundError) as error:
         raise BundleError(str(error)) from None
+    for attempt in range(1, TRIES + 1):
+        try:
+            return _read(path, select)
+        except _Changed:
+            if attempt == TRIES:
+                raise
+            time.sleep(0.01 * attempt)
+
+
+def _read(path: Path, select: Callable[[dict], list[str]]) -> Bundle:
     manifest_path = path / "manifest.json"
     if path.is_file():
         hint = (
@@ -48,6 +68,8 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
         raise BundleError(f"{path}: no manifest.json; is this a `mat export` bundle?")
     try:
         manifest = json.loads(manifest_path.read_text())
+    except FileNotFoundError:
+        raise _Changed(f"{manifest_path}: vanished while it was read") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise BundleError(
             f"{manifest_path}: not valid JSON ({err}); re-export the bundle"
@@ -57,7 +79,11 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise BundleError(f"{manifest_path}: format is not {FORMAT!r}; is this a MAT bundle?")
     version = manifest.get("version")
-    if version not in SUPPORTED_VERSIONS:
+    if (
+        isinstance(version, bool)
+        or not isinstance(version, int)
+        or version not in SUPPORTED_VERSIONS
+    ):
         raise BundleError(
             f"{manifest_path}: bundle format version {version!r}, this runtime reads "
             f"{', '.join(map(str, SUPPORTED_VERSIONS))}; upgrade mat-sdk or re-export with this one"
@@ -71,15 +97,18 @@ def read_bundle(path: str | Path, select: Callable[[dict], list[str]]) -> Bundle
             raise BundleError(f"{manifest_path}: lists no {name}; re-export the bundle")
         file = path / name
         if not file.is_file():
-            raise BundleError(f"{file}: missing; the bundle is incomplete, re-export it")
+            raise _Changed(f"{file}: missing; the bundle is incomplete, re-export it")
         if file.resolve().parent != directory:  # a symlink out of the bundle
             raise BundleError(
                 f"{file}: resolves outside the bundle directory ({file.resolve()}); "
                 "a bundle's graphs must be its own files"
             )
-        data = file.read_bytes()
+        try:
+            data = file.read_bytes()
+        except FileNotFoundError:
+            raise _Changed(f"{file}: vanished while it was read") from None
         if hashlib.sha256(data).hexdigest() != entry.get("sha256"):
-            raise BundleError(
+            raise _Changed(
                 f"{file}: sha256 does not match the manifest (corrupt or modified); re-export it"
             )
         graphs[name] = data

@@ -96,14 +96,24 @@ GRAPH_SCHEMA: dict[str, Any] = {
     "opset": integer(),
     "agents": optional(integer()),
 }
-OPTIONAL = {"env_id", "env_faults", "env_options", "agents"}  # agents: of a graph entry
+OPTIONAL = {"env_id", "env_faults", "env_options"}  # absent from bundles of early versions
+GRAPH_OPTIONAL = {"agents"}
 
 
 def check_manifest(manifest: dict[str, Any], where: str) -> None:
     """Raise `BundleError` for the first field of `manifest` that is missing, of the wrong
     type or out of range, or that disagrees with another; `where` names the file."""
-    _check(manifest, SCHEMA, "", where)
+    _check(manifest, SCHEMA, "", where, OPTIONAL)
     action, agents = manifest["action"], manifest["agents"]
+    if manifest["algo"] == "mappo" and agents["max"] != agents["min"]:
+        _fail(where, "agents", f"of a mappo bundle must be one count, got {agents!r}")
+    choices = agents.get("choices")  # discrete agents' own numbers of choices
+    if choices is not None and (
+        action["type"] != "discrete"
+        or not isinstance(choices, list)
+        or any(integer()(c) or c > action["size"] for c in choices)
+    ):
+        _fail(where, "agents.choices", f"must list integers in 1..action.size, got {choices!r}")
     if not action["low"] < action["high"]:
         _fail(where, "action.low", f"must be below action.high, got {action['low']!r}")
     if agents["max"] is not None and agents["max"] < agents["min"]:
@@ -116,7 +126,7 @@ def check_manifest(manifest: dict[str, Any], where: str) -> None:
                 where, field, "is not a graph name of a bundle (encoder.onnx, decoder_step.onnx, "
                 "decode.onnx, decode_nN.onnx): a graph must be a file in the bundle directory",
             )  # fmt: skip
-        _check(entry, GRAPH_SCHEMA, f"{field}.", where)
+        _check(entry, GRAPH_SCHEMA, f"{field}.", where, GRAPH_OPTIONAL)
         count = match.group(2)
         agents = entry.get("agents")
         if count is not None and agents != int(count):
@@ -125,13 +135,19 @@ def check_manifest(manifest: dict[str, Any], where: str) -> None:
             _fail(where, f"{field}.agents", f"must be null (any count), got {agents!r}")
 
 
-def _check(values: Any, schema: Mapping[str, Any], prefix: str, where: str) -> None:
+def _check(
+    values: Any,
+    schema: Mapping[str, Any],
+    prefix: str,
+    where: str,
+    optional: set[str] = frozenset(),
+) -> None:
     if not isinstance(values, dict):
         _fail(where, prefix.rstrip(".") or "manifest", f"must be an object, got {values!r}")
     for key, rule in schema.items():
         field = f"{prefix}{key}"
         if key not in values:
-            if key in OPTIONAL:
+            if key in optional:
                 continue
             _fail(where, field, "is missing")
         if isinstance(rule, dict):

@@ -25,6 +25,7 @@ Runtime sessions are thread-safe and the call shares no mutable state). A
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import threading
@@ -42,6 +43,9 @@ from mat_runtime.wiring import Wiring, check_wiring
 # `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
 ONNXRUNTIME_FOR_OPSET = {24: "1.24.1"}
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
+# The most agents one call serves. Full attention's memory grows with n^2 (about 1.5 GB at
+# 16,384 agents); far beyond it ONNX Runtime fails to allocate.
+MAX_AGENTS = 16_384
 _BOUND_CACHE = 32  # bound [B, n] shapes kept per thread
 # ONNX Runtime's fused Add + LayerNorm kernel (SkipLayerNormalization) is faster at B = 1
 # but slower with many rows (BENCHMARKS.md), so batches of BATCH_ROWS or more go to
@@ -112,6 +116,12 @@ class Policy:
         head = ["logits"] if self.discrete else ["mean", "std"]
         self._outputs = ["actions", *head, "values"]
         self._local = threading.local()  # each thread's bound buffers (`_Bound`)
+        # discrete agents with fewer choices than the widest: their padding is never chosen
+        choices = manifest["agents"].get("choices")
+        self._own_choices = None
+        if self.discrete and choices is not None:
+            own = np.arange(self.action_size) < np.array(choices)[:, None]
+            self._own_choices = own.astype(np.float32)  # [trained agents, action_size]
         wiring = manifest.get("wiring")
         if wiring is not None:
             check_wiring(wiring, self.obs_dim, self.action_size, str(path / "manifest.json"))
@@ -235,6 +245,16 @@ class Policy:
             np.clip(actions, self._low, self._high, out=actions)
         if not return_values:
             return actions
+        if out_extra is not None:
+            if not isinstance(out_extra, dict):
+                raise InputError(
+                    f"out_extra must be a dict of arrays, got {type(out_extra).__name__}"
+                )
+            unknown = sorted(set(out_extra) - set(self._outputs[1:]), key=str)
+            if unknown:
+                raise InputError(
+                    f"out_extra names {unknown}; this policy returns {self._outputs[1:]}"
+                )
         extra = {}
         for name in self._outputs[1:]:
             given = None if out_extra is None else out_extra.get(name)
@@ -262,6 +282,8 @@ class Policy:
         n = array.shape[-2]
         if n == 0 or (array.ndim == 3 and array.shape[0] == 0):
             raise InputError(f"obs has no agents or no batch rows (shape {array.shape})")
+        if n > MAX_AGENTS:
+            raise InputError(f"got {n} agents; one call serves at most {MAX_AGENTS:,}")
         if n < self.min_agents or (self.max_agents is not None and n > self.max_agents):
             allowed = (
                 f"exactly {self.max_agents}"
@@ -286,14 +308,21 @@ class Policy:
 
     def _fill_available(self, buffer: np.ndarray, available) -> None:
         """Write `available` (None: every choice) as 1/0 into the graph's input `buffer`."""
+        own = self._own_choices
+        if own is not None and own.shape[0] != buffer.shape[-2]:
+            own = None  # another agent count than the team's: no per-agent choice counts
         if available is None:
             buffer.fill(1.0)
+            if own is not None:
+                np.multiply(buffer, own, out=buffer)
             return
         mask = np.asarray(available)
         one_row = buffer.ndim == 3 and buffer.shape[0] == 1 and mask.shape == buffer.shape[1:]
         if mask.shape != buffer.shape and not one_row:
             raise InputError(f"available must have shape {buffer.shape}, got {mask.shape}")
         np.not_equal(mask, 0, out=buffer)
+        if own is not None:
+            np.multiply(buffer, own, out=buffer)
         blocked = ~buffer.any(axis=-1)
         if blocked.any():
             agent = int(np.argwhere(blocked)[0][-1])
@@ -361,6 +390,9 @@ class Policy:
         np.negative(buffer, out=buffer)
 
 
+_KINDS = {"f": "float", "i": "integer"}
+
+
 def _deliver(source: np.ndarray, out: np.ndarray | None, name: str, dtype) -> np.ndarray:
     """A copy of `source` (a bound buffer's view), or `source` written into the caller's `out`."""
     if out is None:
@@ -368,10 +400,12 @@ def _deliver(source: np.ndarray, out: np.ndarray | None, name: str, dtype) -> np
     if not isinstance(out, np.ndarray) or out.shape != source.shape:
         shape = getattr(out, "shape", type(out).__name__)
         raise InputError(f"{name} must be a numpy array of shape {source.shape}, got {shape}")
-    if not np.can_cast(dtype, out.dtype, "same_kind") or not out.flags.writeable:
+    dtype = np.dtype(dtype)
+    fits = out.dtype.kind == dtype.kind and np.can_cast(dtype, out.dtype, "safe")
+    if not fits or not out.flags.writeable:
         raise InputError(
-            f"{name} must be a writeable {np.dtype(dtype)} array (or wider), got {out.dtype}"
-            + ("" if out.flags.writeable else ", read-only")
+            f"{name} must be a writeable {dtype} array (or a wider {_KINDS[dtype.kind]}), got "
+            f"{out.dtype}" + ("" if out.flags.writeable else ", read-only")
         )
     np.copyto(out, source, casting="unsafe")
     return out
@@ -435,8 +469,31 @@ def _open_session(file: Path, opset: int, data: bytes, *options) -> ort.Inferenc
         ) from None
 
 
+# Manifest fields the exporter also writes into every graph's metadata (hashed with it): the
+# manifest must agree with them, so an edited manifest cannot make the runtime misread a graph.
+DESCRIBED_BY_GRAPH = ("algo", "kind", "obs_dim", "action")
+
+
 def _check_graph(file: Path, graph: ort.InferenceSession, manifest: dict, agents) -> None:
-    """The graph's own inputs and outputs agree with the manifest the policy acts on."""
+    """The graph's own inputs, outputs and metadata agree with the manifest the policy acts
+    on."""
+    metadata = graph.get_modelmeta().custom_metadata_map
+    for key in DESCRIBED_BY_GRAPH:
+        if key not in metadata:
+            continue
+        try:
+            own = json.loads(metadata[key])
+        except ValueError:
+            own = None
+        listed = manifest.get(key)
+        if key == "action" and isinstance(own, dict) and isinstance(listed, dict):
+            own = {k: own.get(k) for k in ("type", "size", "low", "high")}
+            listed = {k: listed.get(k) for k in ("type", "size", "low", "high")}
+        if own != listed:
+            raise BundleError(
+                f"{file.parent / 'manifest.json'}: {key} is {listed!r}, but {file.name} was "
+                f"exported with {key} {own!r}; the manifest was edited: re-export the bundle"
+            )
     discrete = manifest["action"]["type"] == "discrete"
     inputs = {i.name: i.shape for i in graph.get_inputs()}
     outputs = {o.name for o in graph.get_outputs()}

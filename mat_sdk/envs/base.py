@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -45,6 +45,25 @@ def position_features(position: str | None, count: int) -> np.ndarray:
         cap = NEAR_ENDS if position == "near-ends" else 1
         return np.minimum(np.stack([index, count - 1 - index], axis=1), cap) / cap
     raise ValueError(f"position must be one of {POSITIONS} or None, got {position!r}")
+
+
+FAULT_MODES = ("zero", "remove")
+
+
+def check_faults(faults: object) -> None:
+    """Refuse faults that are not `{name: "zero" | "remove"}` with string names, before any
+    name reaches MuJoCo (whose name lookup crashes on a non-string)."""
+    if faults is None:
+        return
+    if not isinstance(faults, Mapping):
+        raise ValueError(
+            f"faults must map agent or joint names to 'zero' or 'remove', got {faults!r}"
+        )
+    for name, mode in faults.items():
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a fault names an agent or joint by a non-empty string, got {name!r}")
+        if mode not in FAULT_MODES:
+            raise ValueError(f"fault {name}={mode!r}: mode must be one of {FAULT_MODES}")
 
 
 # An action column that drives nothing (a zeroed fault, a narrower agent's padding).
@@ -103,11 +122,24 @@ class PhysicsDiverged(RuntimeWarning):
     episode was truncated there, with reward 0 and non-finite observations zeroed."""
 
 
-def diverged(time_before: float, time_after: float, reward: float) -> bool:
-    """Whether a step must end the episode. MuJoCo resets a blown-up state silently (NaN or
-    huge positions, velocities or accelerations: `mj_resetData`, simulated time included),
-    so a step whose time did not advance was reset; a NaN/inf reward ends it too."""
-    return time_after <= time_before or not math.isfinite(reward)
+# MuJoCo's warnings for resetting a blown-up state; counted again after the reset
+_RESET_WARNINGS = ("mjWARN_BADQACC", "mjWARN_BADQPOS", "mjWARN_BADQVEL")
+
+
+def diverged(data, time_before: float, step: float, substep: float, reward: float) -> bool:
+    """Whether a step of `data` (an `MjData`) must end the episode. MuJoCo resets a blown-up
+    state silently (NaN or huge positions, velocities or accelerations: `mj_resetData`,
+    simulated time included), so a step that advanced the time by less than its `step` (one
+    `substep` less at most) was reset. On an episode's first step a reset at its start would
+    not show in the time: there MuJoCo's warning counters (zero after the episode's reset)
+    say it. A NaN or inf reward ends the episode too."""
+    if not math.isfinite(reward) or data.time - time_before < step - 0.5 * substep:
+        return True
+    if time_before >= 0.5 * substep:
+        return False
+    import mujoco
+
+    return any(data.warning[getattr(mujoco.mjtWarning, w)].number for w in _RESET_WARNINGS)
 
 
 def end_diverged(env_id: str, step: int, obs: np.ndarray) -> tuple[np.ndarray, float]:
@@ -151,6 +183,12 @@ class ArrayTeam:
     # keep `active [n]` and `available [n, action_size]` up to date (PettingZoo envs).
     masks: bool = False
     variable_count: bool = False  # a family: one observation size for any agent count
+
+    @property
+    def choices(self) -> np.ndarray:
+        """Discrete teams: each agent's own number of choices; the rest up to `action_size`
+        is padding that an agent never takes."""
+        return np.full(self.n_agents, self.action_size)
 
     def step(self, actions) -> tuple[np.ndarray, float, bool, bool]:
         """Apply `actions [n_agents, action_width]`; returns obs, reward, terminated, truncated.

@@ -165,13 +165,14 @@ class MaMuJoCoTeam(ArrayTeam):
             name: actions[row, : self.action_widths[row]]
             for row, name in enumerate(self.possible_agents)  # padding's actions are dropped
         }
-        data = self._env.single_agent_env.unwrapped.data
+        physics = self._env.single_agent_env.unwrapped
+        data, substep = physics.data, physics.model.opt.timestep
         time_before = data.time
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
         first = self.possible_agents[0]
         packed, reward = self._pack(obs), float(rewards[first])
-        if diverged(time_before, data.time, reward):
+        if diverged(data, time_before, self.control_timestep, substep, reward):
             packed, reward = end_diverged(self.env_id, self._steps, packed)
             return packed, reward, False, True
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit

@@ -35,10 +35,12 @@ class TeamParallelEnv(ParallelEnv):
         self._obs_space = spaces.Box(-np.inf, np.inf, (team.obs_dim,), np.float32)
         self._discrete = team.action_type == "discrete"
         self._act_spaces = {
-            name: spaces.Discrete(team.action_size)
+            name: spaces.Discrete(int(choices))
             if self._discrete
             else spaces.Box(-1.0, 1.0, (int(dim),), np.float32)
-            for name, dim in zip(team.agents, team.action_widths, strict=True)
+            for name, dim, choices in zip(
+                team.agents, team.action_widths, team.choices, strict=True
+            )
         }
         self.state_space = spaces.Box(-np.inf, np.inf, (team.state_dim,), np.float32)
         self._actions = np.zeros((team.n_agents, team.action_width))
@@ -74,7 +76,8 @@ class TeamParallelEnv(ParallelEnv):
                 shape = "an int" if self._discrete else f"shape {expected}"
                 raise ValueError(f"{agent}: action has shape {action.shape}, expected {shape}")
             action = action.reshape(expected)
-            invalid = invalid_action(action, self.team.action_type, self.team.action_size)
+            size = self._act_spaces[agent].n if self._discrete else self.team.action_size
+            invalid = invalid_action(action, self.team.action_type, size)
             if invalid:
                 raise ValueError(f"{agent}: {invalid[1]}, got {action}")
             self._actions[row, : expected[0]] = action

@@ -81,6 +81,16 @@ def from_pettingzoo(
     return spec
 
 
+def _check_names(agents: list, env_id: str) -> None:
+    """Agent names must be distinct, also as text (1 and "1" would be one agent in a
+    checkpoint, a manifest or a log)."""
+    texts = [str(a) for a in agents]
+    if not agents or len(set(texts)) != len(texts):
+        raise ValueError(
+            f"{env_id}: possible_agents must be distinct names (also as text), got {agents!r}"
+        )
+
+
 def _observation_box(space, agent: str) -> spaces.Box:
     """The agent's observation Box (inside a Dict that also holds its `action_mask`)."""
     if isinstance(space, spaces.Dict) and set(space.spaces) in (
@@ -114,6 +124,7 @@ class PettingZooTeam(ArrayTeam):
         self.spec, self.env_id, self.description = spec, spec.env_id, spec.description
         self._env = spec.env_factory(seed)
         self.possible_agents = list(self._env.possible_agents)
+        _check_names(self.possible_agents, spec.env_id)
         self.agents = self.possible_agents
         self.n_agents = len(self.agents)
         self.agent_id = spec.agent_id if agent_id is None else bool(agent_id)
@@ -157,6 +168,10 @@ class PettingZooTeam(ArrayTeam):
             f"{self.env_id}: action spaces {found} are not supported; supported: {SUPPORTED}"
         )
 
+    @property
+    def choices(self) -> np.ndarray:
+        return self._choices if self.action_type == "discrete" else super().choices
+
     def _state_size(self) -> int:
         state_space = getattr(self._env, "state_space", None)
         if isinstance(state_space, spaces.Box) and len(state_space.shape) == 1:
@@ -185,6 +200,12 @@ class PettingZooTeam(ArrayTeam):
         obs, rewards, terminations, _, infos = self._env.step(self._per_agent(actions))
         self._steps += 1
         given = [float(rewards[a]) for a in live if a in rewards]
+        if not np.isfinite(given).all():
+            agent = next(a for a in live if a in rewards and not np.isfinite(float(rewards[a])))
+            raise ValueError(
+                f"{self.env_id}: {agent}'s reward is {float(rewards[agent])} at step "
+                f"{self._steps}; the env must give finite rewards"
+            )
         combine = np.sum if self.spec.team_reward == "sum" else np.mean
         reward = float(combine(given)) if given else 0.0
         packed = self._read(obs, infos)
@@ -200,7 +221,12 @@ class PettingZooTeam(ArrayTeam):
             if name not in self._env.agents:
                 continue
             if self.action_type == "discrete":
-                per_agent[name] = int(actions[row, 0]) + int(self._starts[row])
+                choice = int(actions[row, 0])
+                if choice >= self._choices[row]:
+                    raise ValueError(
+                        f"{name}: action must be a choice 0..{self._choices[row] - 1}, got {choice}"
+                    )
+                per_agent[name] = choice + int(self._starts[row])
                 continue
             action = np.clip(actions[row, : self.action_widths[row]], -1.0, 1.0)
             low, high = self._low[row], self._high[row]
@@ -213,6 +239,12 @@ class PettingZooTeam(ArrayTeam):
         """The padded observations; updates `active` and (discrete) `available`."""
         self._obs[:] = 0.0
         discrete = self.action_type == "discrete"
+        strangers = [a for a in self._env.agents if a not in self.possible_agents]
+        if strangers or len(set(self._env.agents)) != len(self._env.agents):
+            raise ValueError(
+                f"{self.env_id}: the env's agents {list(self._env.agents)} are not distinct "
+                f"members of its possible_agents {self.possible_agents}"
+            )
         for row, name in enumerate(self.possible_agents):
             present = name in obs and name in self._env.agents
             self.active[row] = float(present)
@@ -224,7 +256,18 @@ class PettingZooTeam(ArrayTeam):
             value, mask = obs[name], infos.get(name, {}).get("action_mask")
             if isinstance(value, Mapping):
                 value, mask = value["observation"], value.get("action_mask", mask)
-            self._obs[row, : self._obs_sizes[row]] = np.asarray(value, np.float32).reshape(-1)
+            value = np.asarray(value, np.float32).reshape(-1)
+            if value.size != self._obs_sizes[row]:
+                raise ValueError(
+                    f"{self.env_id}: {name}'s observation has {value.size} values, its space "
+                    f"{self._obs_sizes[row]}"
+                )
+            if not np.isfinite(value).all():
+                raise ValueError(
+                    f"{self.env_id}: {name}'s observation holds NaN or inf at step {self._steps}; "
+                    "the env must give finite observations"
+                )
+            self._obs[row, : self._obs_sizes[row]] = value
             if self.agent_id:
                 self._obs[row, -self.n_agents + row] = 1.0
             if discrete:

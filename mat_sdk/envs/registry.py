@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
 
+from mat_sdk.envs.base import check_faults
 from mat_sdk.envs.games import CoordinationGame
 from mat_sdk.envs.mamujoco import PREFIX as MAMUJOCO
 from mat_sdk.envs.mamujoco import MaMuJoCoTeam
@@ -141,6 +142,7 @@ def resolve(env_id: str | EnvSpec) -> EnvSpec:
 
 def build_team(env: str | EnvSpec, faults: Mapping[str, str] | None = None, **options: Any):
     """The team an id or spec names, with the options its team class takes."""
+    check_faults(faults)
     spec = resolve(env)
     kind = spec.kind if isinstance(spec, TeamClassSpec) else _TEAM_OF[type(spec)]
     _check_options(kind, spec.env_id, options)
@@ -219,8 +221,32 @@ def _check_options(kind: type, env_id: str, options: Mapping[str, Any]) -> None:
         for name, p in inspect.signature(kind.__init__).parameters.items()
         if p.kind is inspect.Parameter.KEYWORD_ONLY
     ]
-    unknown = sorted(set(options) - set(valid))
+    unknown = sorted(set(options) - set(valid), key=str)
     if unknown:
         raise ValueError(
             f"unknown env option(s) {unknown} for {env_id}; it takes {', '.join(valid)}"
         )
+    annotations = {
+        name: p.annotation for name, p in inspect.signature(kind.__init__).parameters.items()
+    }
+    for name, value in options.items():
+        if value is None:
+            continue
+        kind_of = _OPTION_KINDS.get(str(annotations[name]))
+        if kind_of is None:
+            continue
+        wanted, valid_value = kind_of
+        if not valid_value(value):
+            raise ValueError(f"env option {name} must be {wanted} or null, got {value!r}")
+
+
+def _integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**32
+
+
+# what each option's annotation allows (every option may also be None: the env's default)
+_OPTION_KINDS: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "int | None": ("an integer in 0..2**32 - 1", _integer),
+    "bool | None": ("true or false", lambda value: isinstance(value, bool)),
+    "str | None": ("a string", lambda value: isinstance(value, str)),
+}

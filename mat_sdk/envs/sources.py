@@ -12,7 +12,10 @@ the same way for the built-in robots, which are `RobotSpec`s too (`robots.py`).
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
+import traceback
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -24,6 +27,13 @@ from dm_control.rl import control
 from dm_control.suite import base
 
 Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
+# Physics steps per env step at most: more is no control rate, and one env step would run
+# for minutes without answering Ctrl-C.
+MAX_SUBSTEPS = 1000
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -91,8 +101,18 @@ def from_dm_control(
     `layout` lists the agents' actuator names (a list of lists, or a dict agent name ->
     actuator names). It is checked against the model now; a mistake raises `ValueError`.
     """
+    if not callable(env_factory):
+        raise ValueError(f"env_factory must be a function of a seed, got {env_factory!r}")
     names, groups = _split_layout(layout)
-    environment = env_factory(0)
+    if isinstance(env_factory, ModelEnvironment):  # ours (from_mjcf): errors say what is wrong
+        environment = env_factory(0)
+    else:
+        environment = user_call(env_factory, "environment factory", 0)
+    if not isinstance(environment, control.Environment):
+        raise ValueError(
+            f"{_name_of(env_factory)}(seed) must return a dm_control control.Environment, got "
+            f"{type(environment).__name__}"
+        )
     check_layout(environment.physics.model.ptr, groups)
     if isinstance(hops, bool) or not isinstance(hops, int) or hops < 0:
         raise ValueError(f"hops must be an integer >= 0, got {hops!r}")
@@ -123,6 +143,11 @@ def check_layout(model, groups: Sequence[Sequence[str]]) -> None:
         if not group:
             raise ValueError(f"agent {agent} of the layout drives no actuator")
         for name in group:
+            if not isinstance(name, str) or not name:
+                raise ValueError(
+                    f"agent {agent} of the layout names an actuator by {name!r}; name each "
+                    "actuator by its (non-empty) MJCF name"
+                )
             if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, name) < 0:
                 raise ValueError(
                     f"the model has no actuator named {name!r}; its actuators: "
@@ -138,21 +163,45 @@ def check_layout(model, groups: Sequence[Sequence[str]]) -> None:
 
 def _split_layout(layout: Layout) -> tuple[tuple[str, ...], tuple[tuple[str, ...], ...]]:
     if isinstance(layout, Mapping):
-        names, groups = tuple(str(n) for n in layout), tuple(layout.values())
-    else:
+        names, groups = tuple(layout), tuple(layout.values())
+        bad = next((n for n in names if not isinstance(n, str) or not n), None)
+        if bad is not None or len(set(names)) != len(names):
+            raise ValueError(f"the layout's agent names must be distinct strings, got {bad!r}")
+    elif isinstance(layout, Sequence) and not isinstance(layout, str):
         names, groups = (), tuple(layout)
+    else:
+        raise ValueError(
+            "layout lists each agent's actuator names: a list of lists, or a dict of agent name "
+            f"-> list, got {layout!r}"
+        )
     cleaned = []
     for group in groups:
-        if isinstance(group, str):
-            raise ValueError(
-                f"each agent's actuators must be a list of names, got the string {group!r}"
-            )
+        if isinstance(group, str) or not isinstance(group, Sequence):
+            raise ValueError(f"each agent's actuators must be a list of names, got {group!r}")
         cleaned.append(tuple(group))
     return names, tuple(cleaned)
 
 
 def _name_of(factory: Callable) -> str:
     return getattr(factory, "__name__", type(factory).__name__)
+
+
+class UserCodeError(RuntimeError):
+    """A function the user gave (a reward, a termination, an env factory) raised."""
+
+
+def user_call(function: Callable, role: str, *args: Any) -> Any:
+    """`function(*args)`; what it raises becomes a `UserCodeError` naming the function, its
+    role and where in it the error came from: the user's code, not a bug of the SDK."""
+    try:
+        return function(*args)
+    except Exception as error:
+        frame = traceback.extract_tb(error.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        raise UserCodeError(
+            f"your {role} {_name_of(function)} raised {type(error).__name__}: {error} (at "
+            f"{where}); fix it there"
+        ) from error
 
 
 # ---------------------------------------------------------------------------- bare models
@@ -177,10 +226,10 @@ class _ModelTask(base.Task):
         return {"qpos": physics.data.qpos.copy(), "qvel": physics.data.qvel.copy()}
 
     def get_reward(self, physics) -> float:
-        return float(self._reward_fn(physics))
+        return float(user_call(self._reward_fn, "reward function", physics))
 
     def get_termination(self, physics) -> float | None:
-        if self._terminate is not None and self._terminate(physics):
+        if self._terminate is not None and user_call(self._terminate, "terminate", physics):
             return 0.0
         return None
 
@@ -197,9 +246,15 @@ class ModelEnvironment:
 
     def physics(self) -> dm_mujoco.Physics:
         """The compiled model; a path keeps its directory for included files and meshes."""
-        if self.model.lstrip().startswith("<"):
-            return dm_mujoco.Physics.from_xml_string(self.model)
-        return dm_mujoco.Physics.from_xml_path(self.model)
+        xml = self.model.lstrip().startswith("<")
+        try:
+            if xml:
+                return dm_mujoco.Physics.from_xml_string(self.model)
+            return dm_mujoco.Physics.from_xml_path(self.model)
+        except Exception as error:  # MuJoCo's parser and compiler: ValueError, Error, ...
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:300]
+            name = "the model XML" if xml else self.model
+            raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
 
     def __call__(self, seed: int | None) -> control.Environment:
         task = _ModelTask(
@@ -233,6 +288,8 @@ def from_mjcf(
     model's reference pose (qpos0) with uniform noise of +-`reset_noise` on every joint
     position and `reset_noise`-scaled normal noise on every velocity.
     """
+    if not isinstance(model, str | os.PathLike):
+        raise ValueError(f"model must be an MJCF file path or an XML string, got {model!r}")
     source = os.fspath(model)
     is_xml = source.lstrip().startswith("<")
     if not is_xml:
@@ -240,10 +297,18 @@ def from_mjcf(
         if not path.is_file():
             raise ValueError(f"model {source!r} is neither an MJCF file nor an XML string")
         source = str(path.resolve())
-    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+    if (
+        isinstance(substeps, bool)
+        or not isinstance(substeps, int)
+        or not 1 <= substeps <= MAX_SUBSTEPS
+    ):
+        raise ValueError(f"substeps must be an integer in 1..{MAX_SUBSTEPS}, got {substeps!r}")
     if not callable(reward):
         raise ValueError(f"reward must be a function of the physics, got {reward!r}")
+    if terminate is not None and not callable(terminate):
+        raise ValueError(f"terminate must be a function of the physics or None, got {terminate!r}")
+    if not _real(reset_noise) or not 0 <= reset_noise < math.inf:
+        raise ValueError(f"reset_noise must be a finite number >= 0, got {reset_noise!r}")
     factory = ModelEnvironment(source, reward, terminate, substeps, float(reset_noise))
     name = "model" if is_xml else Path(source).stem
     return from_dm_control(

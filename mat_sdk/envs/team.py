@@ -22,6 +22,7 @@ import numpy as np
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
     ArrayTeam,
+    check_faults,
     checked_episode_limit,
     diverged,
     end_diverged,
@@ -40,7 +41,6 @@ from mat_sdk.envs.decomposition import (
 if TYPE_CHECKING:
     from mat_sdk.envs.sources import RobotSpec
 
-FAULT_MODES = ("zero", "remove")
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # includes ctrl and the solver's warmstart
 
 
@@ -109,9 +109,8 @@ class RobotTeam(ArrayTeam):
         """Map `{agent or joint name: mode}` to zeroed actuators and removed agents."""
         zeroed: set[int] = set()
         removed: set[int] = set()
+        check_faults(faults)
         for name, mode in faults.items():
-            if mode not in FAULT_MODES:
-                raise ValueError(f"fault {name}={mode!r}: mode must be one of {FAULT_MODES}")
             agents, actuators = self._fault_target(name)
             if mode == "remove":
                 removed.update(agents)
@@ -302,7 +301,8 @@ class RobotTeam(ArrayTeam):
         mujoco.mj_step1(self._model, self._data)
         self._steps += 1
         obs, reward = self.observe(), float(self._reward(self.physics))
-        if diverged(time_before, self._data.time, reward):
+        step, substep = self.control_timestep, self._model.opt.timestep
+        if diverged(self._data, time_before, step, substep, reward):
             obs, reward = end_diverged(self.env_id, self._steps, obs)
             return obs, reward, False, True
         terminated = self._task.get_termination(self.physics) is not None
