@@ -133,6 +133,10 @@ class TrainConfig:
                 isinstance(value, list) and all(isinstance(v, str) for v in value)
             ):
                 raise ValueError(f"{f.name} must be a list of strings, got {value!r}")
+        if "seed" in self.env_options:
+            raise ValueError(
+                "env_options cannot set seed: env copy i is seeded with the run's seed + i"
+            )
         if not all(isinstance(mode, str) for mode in self.faults.values()):
             raise ValueError(f"faults must map names to 'zero' or 'remove', got {self.faults!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:

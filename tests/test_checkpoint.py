@@ -44,6 +44,34 @@ EDITS = {
     "no env id": (lambda p: p["config"]["env"].pop("id"), "config.env.id must be a string"),
     "no normaliser": (lambda p: p.pop("obs_norm"), "obs_norm must hold the tensors mean, var"),
     "bad progress": (lambda p: p.update(progress={"steps": -1}), "progress must hold"),
+    "None fault": (  # a name MuJoCo's lookup would crash on
+        lambda p: p["config"]["train"].update(faults={None: "zero"}),
+        r"config.train is invalid \(faults must be a mapping with string keys",
+    ),
+    "int fault": (
+        lambda p: p["config"]["train"].update(faults={3: "zero"}),
+        r"config.train is invalid \(faults must be a mapping with string keys",
+    ),
+    "tuple fault": (
+        lambda p: p["config"]["train"].update(faults={("a",): "zero"}),
+        r"config.train is invalid \(faults must be a mapping with string keys",
+    ),
+    "list options": (
+        lambda p: p["config"]["train"].update(env_options=["x"]),
+        r"config.train is invalid \(env_options must be a mapping",
+    ),
+    "seed option": (
+        lambda p: p["config"]["train"].update(env_options={"seed": "x"}),
+        "env_options cannot set seed",
+    ),
+    "two env ids": (
+        lambda p: p["config"]["train"].update(env="coordination-4"),
+        r"config.env.id differs from config.train.env \('coordination-4'\)",
+    ),
+    "unknown field": (
+        lambda p: p["config"]["train"].update(colour="red"),
+        r"config.train has fields this SDK does not know \(\['colour'\]\)",
+    ),
     "wrong weights": (
         lambda p: p["model"].update({"encoder.ln.weight": torch.zeros(3)}),
         "its weights do not fit the model",

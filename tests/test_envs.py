@@ -361,7 +361,7 @@ def test_mamujoco_faults_name_an_agent_or_a_joint():
 @pytest.mark.parametrize("env_id", ["hopper-2x2", "mamujoco:HalfCheetah-6x1"])
 def test_episode_limit_must_be_a_positive_integer(env_id):
     for limit in (0, -5, 2.5):  # 0 used to mean the default, silently
-        with pytest.raises(ValueError, match=f"episode_limit must be an integer >= 1, got {limit}"):
+        with pytest.raises(ValueError, match=f"episode_limit must be an integer.* got {limit}"):
             envs.make_team(env_id, episode_limit=limit)
     assert envs.make_team(env_id, episode_limit=7).episode_limit == 7
 

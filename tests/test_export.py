@@ -143,6 +143,12 @@ def test_force_replaces_only_a_bundle_of_its_own_files(mat_checkpoint, mat_bundl
     with pytest.raises(ExportError, match=r"holds files that are not the bundle's \(notes.txt\)"):
         export(mat_checkpoint, bundle, force=True)
     assert (bundle / "notes.txt").read_text() == "mine" and (bundle / "decode.onnx").exists()
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest["graphs"]["notes.txt"] = manifest["graphs"]["decode.onnx"]  # a doctored listing
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ExportError, match=r"holds files that are not the bundle's \(notes.txt\)"):
+        export(mat_checkpoint, bundle, force=True)
+    assert (bundle / "notes.txt").read_text() == "mine"
 
     run = tmp_path / "run"  # the checkpoint exported into its own directory's bundle
     shutil.copytree(mat_bundle[0], run)

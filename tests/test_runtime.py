@@ -242,13 +242,23 @@ def test_caller_arrays_of_the_wrong_kind_are_refused(bundles):
     obs, shape = _obs(policy, 3), (3, policy.action_size)
     for out, problem in (
         (np.zeros((3, 1), np.float32), f"out must be a numpy array of shape {shape}, got (3, 1)"),
-        (np.zeros(shape, np.int32), "out must be a writeable float32 array (or wider), got int32"),
+        (np.zeros(shape, np.int32), "out must be a writeable float32 array (or a wider float), "
+         "got int32"),
         ([[0.0] * shape[1]] * 3, f"out must be a numpy array of shape {shape}, got list"),
-    ):
+        *((np.zeros(shape, kind), f"got {np.dtype(kind)}")
+          for kind in (np.complex64, np.float16, object)),
+    ):  # fmt: skip
         with pytest.raises(InputError, match=re.escape(problem)):
             policy.act(obs, out=out)
+    assert policy.act(obs, out=np.zeros(shape, np.float64)).dtype == np.float64  # wider is fine
     with pytest.raises(InputError, match=re.escape("out_extra['values'] must be a numpy array")):
         policy.act(obs, return_values=True, out_extra={"values": np.zeros(4, np.float32)})
+    with pytest.raises(InputError, match="out_extra must be a dict of arrays, got list"):
+        policy.act(obs, return_values=True, out_extra=[np.zeros(3, np.float32)])
+    with pytest.raises(InputError, match=r"out_extra names \['value'\]; this policy returns"):
+        policy.act(obs, return_values=True, out_extra={"value": np.zeros(3, np.float32)})
+    with pytest.raises(InputError, match="one call serves at most 16,384"):
+        policy.act(np.zeros((65_536, policy.obs_dim), np.float32))
     assert policy.act(obs).shape == shape  # and it keeps serving
 
 
@@ -367,6 +377,58 @@ def test_broken_bundles_are_refused_before_loading(bundles, tmp_path):
         Policy.load(source / "manifest.json")
     with pytest.raises(InputError, match="not available"):
         Policy.load(source, providers=["NoSuchExecutionProvider"])
+
+
+def test_loading_while_an_export_replaces_the_bundle_never_fails(bundles, tmp_path):
+    """`mat export --force` swaps a finished bundle in while a controller may be loading it:
+    a load sees the old bundle or the new one, whole."""
+    import shutil
+
+    from mat_sdk import files
+
+    target = tmp_path / "bundle"
+    shutil.copytree(bundles["mat"][1], target)
+    done, failures = threading.Event(), []
+
+    def replace_again_and_again():
+        while not done.is_set():
+            staging = tmp_path / f".staging-{time.monotonic_ns()}"
+            source = bundles["mat-dec" if len(failures) % 2 else "mat"][1]
+            shutil.copytree(source, staging)
+            files.replace_directory(staging, target)
+
+    exporter = threading.Thread(target=replace_again_and_again)
+    exporter.start()
+    try:
+        for _ in range(60):
+            try:
+                Policy.load(target)
+            except BundleError as error:
+                failures.append(error)
+    finally:
+        done.set()
+        exporter.join()
+    assert not failures, failures[:3]
+
+
+def test_discrete_agents_with_fewer_choices_never_take_their_padding(tmp_path):
+    """MPE's speaker has 3 choices, its listener 5: the bundle records each agent's count and
+    the runtime masks the speaker's two padding choices, also without an `available` mask."""
+    with_examples()
+    ckpt = make_checkpoint(tmp_path / "c.pt", "mpe_envs:speaker_listener")
+    manifest = export(ckpt, tmp_path / "bundle", agent_counts=(1, 2), trust_env_code=True)
+    assert manifest["agents"]["choices"] == [3, 5]
+    policy = Policy.load(tmp_path / "bundle")
+    obs = 3.0 * np.random.default_rng(0).standard_normal((500, 2, policy.obs_dim))
+    choices = policy.act(obs, deterministic=False, seed=0)
+    assert choices[:, 0].max() <= 2 and choices[:, 1].max() >= 3
+    run = subprocess.run(
+        [sys.executable, "examples/controller.py", str(tmp_path / "bundle"), "--seconds", "0.3",
+         "--warmup", "0", "--trust-env-code"],
+        capture_output=True, text=True, cwd=Path(__file__).parents[1],
+        env={**os.environ, "PYTHONPATH": "examples"},
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
 
 
 def _edit_manifest(directory, **fields):
@@ -643,11 +705,18 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
     cases = {
         "obs_dim": (set_field("obs_dim", -17), r"obs_dim must be an integer in 1\.\."),
         "huge": (set_field("obs_dim", 10**30), r"obs_dim must be an integer in 1\.\."),
-        "size": (set_field("action", "size", 5), r"input noise has shape .*action\.size"),
+        "size": (set_field("action", "size", 5), r"action is .*'size': 5.*exported with action"),
         "type": (set_field("action", "type", 3), r"action\.type must be one of"),
         "low": (set_field("action", "low", "x"), r"action\.low must be a finite number"),
         "bounds": (set_field("action", "low", 2.0), r"action\.low must be below action\.high"),
         "algo": (set_field("algo", KeyError), "algo is missing"),
+        "other algo": (
+            set_field("algo", "mat-dec"),
+            r"algo is 'mat-dec', but decode.onnx was exported with algo 'mat'",
+        ),
+        "no agents": (set_field("agents", KeyError), "agents is missing"),
+        "float version": (set_field("version", 1.0), "bundle format version 1.0"),
+        "true version": (set_field("version", True), "bundle format version True"),
         "agents": (set_field("agents", [1]), "agents must be an object"),
         "max": (set_field("agents", "max", 0), r"agents\.max must be an integer"),
         "entry": (set_field("graphs", "decode.onnx", "x"), r"graphs\.decode\.onnx must be an"),
@@ -697,7 +766,7 @@ def test_the_bundles_wiring_rebuilds_observations_and_commands_from_raw_state(
     features equal the env's own, and the commands equal the ctrl the env writes."""
     with_examples()
     ckpt = make_checkpoint(tmp_path / "c.pt", env_id, "mat", **options)
-    export(ckpt, tmp_path / "bundle", agent_counts=(1,))
+    export(ckpt, tmp_path / "bundle", agent_counts=(1,), trust_env_code=True)  # our own arm
     policy = Policy.load(tmp_path / "bundle")
     team = make_team(env_id, options.get("faults"), **options.get("env_options", {}))
     wiring, data = policy.wiring, team.physics.data

@@ -164,9 +164,8 @@ def check_layout(model, groups: Sequence[Sequence[str]]) -> None:
 def _split_layout(layout: Layout) -> tuple[tuple[str, ...], tuple[tuple[str, ...], ...]]:
     if isinstance(layout, Mapping):
         names, groups = tuple(layout), tuple(layout.values())
-        bad = next((n for n in names if not isinstance(n, str) or not n), None)
-        if bad is not None or len(set(names)) != len(names):
-            raise ValueError(f"the layout's agent names must be distinct strings, got {bad!r}")
+        if not all(isinstance(n, str) and n for n in names) or len(set(names)) != len(names):
+            raise ValueError(f"the layout's agent names must be distinct strings, got {names!r}")
     elif isinstance(layout, Sequence) and not isinstance(layout, str):
         names, groups = (), tuple(layout)
     else:
@@ -177,7 +176,8 @@ def _split_layout(layout: Layout) -> tuple[tuple[str, ...], tuple[tuple[str, ...
     cleaned = []
     for group in groups:
         if isinstance(group, str) or not isinstance(group, Sequence):
-            raise ValueError(f"each agent's actuators must be a list of names, got {group!r}")
+            what = f"the string {group!r}" if isinstance(group, str) else repr(group)
+            raise ValueError(f"each agent's actuators must be a list of names, got {what}")
         cleaned.append(tuple(group))
     return names, tuple(cleaned)
 
