@@ -48,6 +48,9 @@ class _QuietSuiteModels(logging.Filter):
 
 logging.getLogger("absl").addFilter(_QuietSuiteModels())
 
+from mat_sdk.envs import terms
+from mat_sdk.envs.actuation import JointTargets
+from mat_sdk.envs.features import Observation
 from mat_sdk.envs.parallel import TeamParallelEnv
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
 from mat_sdk.envs.registry import (
@@ -70,6 +73,8 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "Env",
     "EnvSpec",
+    "JointTargets",
+    "Observation",
     "PettingZooSpec",
     "PettingZooTeam",
     "RobotSpec",
@@ -88,6 +93,7 @@ __all__ = [
     "make_vec",
     "register",
     "resolve",
+    "terms",
 ]
 
 Env = str | EnvSpec

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import math
 import numbers
+import traceback
 import warnings
 from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -151,6 +154,24 @@ def end_diverged(env_id: str, step: int, obs: np.ndarray) -> tuple[np.ndarray, f
         stacklevel=3,
     )
     return np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0), 0.0
+
+
+class UserCodeError(RuntimeError):
+    """A function the user gave (a reward, a termination, an env factory) raised."""
+
+
+def user_call(function: Callable, role: str, *args: Any) -> Any:
+    """`function(*args)`; what it raises becomes a `UserCodeError` naming the function, its
+    role and where in it the error came from: the user's code, not a bug of the SDK."""
+    try:
+        return function(*args)
+    except Exception as error:
+        frame = traceback.extract_tb(error.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        name = getattr(function, "__name__", type(function).__name__)
+        raise UserCodeError(
+            f"your {role} {name} raised {type(error).__name__}: {error} (at {where}); fix it there"
+        ) from error
 
 
 def render_failed(error: Exception) -> RuntimeError:

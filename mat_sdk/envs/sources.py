@@ -15,16 +15,20 @@ from __future__ import annotations
 import math
 import numbers
 import os
-import traceback
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
-from dm_control.suite import base
+
+from mat_sdk.envs import terms
+from mat_sdk.envs.actuation import JointTargets
+from mat_sdk.envs.base import user_call
+from mat_sdk.envs.features import Observation
+from mat_sdk.envs.model_task import ModelEnvironment
 
 Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
 # Physics steps per env step at most: more is no control rate, and one env step would run
@@ -55,6 +59,9 @@ class RobotSpec:
     variable_count: bool = False  # a family served by one policy for any agent count
     root_features: bool = True  # root height/orientation/velocity in every observation
     task_features: Callable[[control.Physics], np.ndarray] | None = None
+    # observations from the hardware's signals instead of the raw joint state (features.py)
+    observation: Observation | None = None
+    actions: JointTargets | None = None  # actions as joint targets (actuation.py)
     # The task's reward in closed form, for speed; a test holds it equal to the task's.
     fast_reward: Callable[[control.Physics], float] | None = None
     description: str = ""
@@ -93,6 +100,8 @@ def from_dm_control(
     agent_id: bool = True,
     episode_limit: int | None = None,
     root_features: bool = True,
+    observation: Observation | None = None,
+    actions: JointTargets | None = None,
     env_id: str | None = None,
     description: str = "",
 ) -> RobotSpec:
@@ -100,6 +109,7 @@ def from_dm_control(
 
     `layout` lists the agents' actuator names (a list of lists, or a dict agent name ->
     actuator names). It is checked against the model now; a mistake raises `ValueError`.
+    `observation` and `actions`: as in `from_mjcf`.
     """
     if not callable(env_factory):
         raise ValueError(f"env_factory must be a function of a seed, got {env_factory!r}")
@@ -116,7 +126,11 @@ def from_dm_control(
     check_layout(environment.physics.model.ptr, groups)
     if isinstance(hops, bool) or not isinstance(hops, int) or hops < 0:
         raise ValueError(f"hops must be an integer >= 0, got {hops!r}")
-    return RobotSpec(
+    for value, kind, name in ((observation, Observation, "observation"),
+                              (actions, JointTargets, "actions")):  # fmt: skip
+        if value is not None and not isinstance(value, kind):
+            raise ValueError(f"{name} must be an envs.{kind.__name__} or None, got {value!r}")
+    spec = RobotSpec(
         env_id or f"dm_control:{_name_of(env_factory)}",
         env_factory,
         groups,
@@ -125,8 +139,32 @@ def from_dm_control(
         agent_id=agent_id,
         episode_limit=episode_limit,
         root_features=root_features,
+        observation=observation,
+        actions=actions,
         description=description or f"{len(groups)} agents over {_name_of(env_factory)}",
     )
+    unused = [
+        name for name in _all_actuators(environment) if name not in {a for g in groups for a in g}
+    ]
+    if unused:
+        warnings.warn(
+            f"{spec.env_id}: the layout leaves actuators {unused} to no agent; they stay at "
+            "their start control",
+            UnusedActuators,
+            stacklevel=2,
+        )
+    if observation is not None or actions is not None:
+        spec.build()  # refuse what the signals or targets cannot use, now
+    return spec
+
+
+class UnusedActuators(UserWarning):
+    """A layout leaves some of the model's actuators to no agent."""
+
+
+def _all_actuators(environment: control.Environment) -> list[str]:
+    model = environment.physics.model.ptr
+    return [model.actuator(i).name or f"#{i}" for i in range(model.nu)]
 
 
 def check_layout(model, groups: Sequence[Sequence[str]]) -> None:
@@ -186,107 +224,44 @@ def _name_of(factory: Callable) -> str:
     return getattr(factory, "__name__", type(factory).__name__)
 
 
-class UserCodeError(RuntimeError):
-    """A function the user gave (a reward, a termination, an env factory) raised."""
-
-
-def user_call(function: Callable, role: str, *args: Any) -> Any:
-    """`function(*args)`; what it raises becomes a `UserCodeError` naming the function, its
-    role and where in it the error came from: the user's code, not a bug of the SDK."""
-    try:
-        return function(*args)
-    except Exception as error:
-        frame = traceback.extract_tb(error.__traceback__)[-1]
-        where = f"{Path(frame.filename).name}:{frame.lineno}"
-        raise UserCodeError(
-            f"your {role} {_name_of(function)} raised {type(error).__name__}: {error} (at "
-            f"{where}); fix it there"
-        ) from error
-
-
 # ---------------------------------------------------------------------------- bare models
-
-
-class _ModelTask(base.Task):
-    """A task made of the user's reward and termination functions, with a noisy start."""
-
-    def __init__(self, reward, terminate, reset_noise: float, random):
-        super().__init__(random=random)
-        self._reward_fn, self._terminate, self._noise = reward, terminate, reset_noise
-
-    def initialize_episode(self, physics) -> None:
-        model = physics.model
-        physics.data.qpos[:] = model.qpos0 + self.random.uniform(
-            -self._noise, self._noise, model.nq
-        )
-        physics.data.qvel[:] = self._noise * self.random.standard_normal(model.nv)
-        super().initialize_episode(physics)
-
-    def get_observation(self, physics) -> dict:
-        return {"qpos": physics.data.qpos.copy(), "qvel": physics.data.qvel.copy()}
-
-    def get_reward(self, physics) -> float:
-        return float(user_call(self._reward_fn, "reward function", physics))
-
-    def get_termination(self, physics) -> float | None:
-        if self._terminate is not None and user_call(self._terminate, "terminate", physics):
-            return 0.0
-        return None
-
-
-@dataclass(frozen=True)
-class ModelEnvironment:
-    """A picklable recipe for a dm_control environment from an MJCF model and a reward."""
-
-    model: str  # a path to the XML file, or the XML itself
-    reward: Callable[[Any], float]
-    terminate: Callable[[Any], bool] | None = None
-    substeps: int = 1
-    reset_noise: float = 0.1
-
-    def physics(self) -> dm_mujoco.Physics:
-        """The compiled model; a path keeps its directory for included files and meshes."""
-        xml = self.model.lstrip().startswith("<")
-        try:
-            if xml:
-                return dm_mujoco.Physics.from_xml_string(self.model)
-            return dm_mujoco.Physics.from_xml_path(self.model)
-        except Exception as error:  # MuJoCo's parser and compiler: ValueError, Error, ...
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:300]
-            name = "the model XML" if xml else self.model
-            raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
-
-    def __call__(self, seed: int | None) -> control.Environment:
-        task = _ModelTask(
-            self.reward, self.terminate, self.reset_noise, np.random.RandomState(seed)
-        )
-        return control.Environment(
-            self.physics(),
-            task,
-            n_sub_steps=self.substeps,  # no time limit: episode_limit
-        )
 
 
 def from_mjcf(
     model: str | os.PathLike,
     layout: Layout,
-    reward: Callable[[Any], float],
+    reward: Callable[[Any], float] | Sequence[terms.Term],
     *,
-    terminate: Callable[[Any], bool] | None = None,
+    terminate: Callable[[Any], bool] | Sequence | None = None,
+    keyframe: str | None = None,
+    reset_noise: float = 0.1,
+    root_noise: tuple[float, float] = (0.0, 0.0),
+    observation: Observation | None = None,
+    actions: JointTargets | None = None,
+    commands: terms.VelocityCommand | None = None,
     episode_limit: int = 1000,
     substeps: int = 1,
-    reset_noise: float = 0.1,
     hops: int = 1,
     agent_id: bool = True,
     root_features: bool = True,
     env_id: str | None = None,
 ) -> RobotSpec:
-    """A team over a bare MuJoCo model: `model` is an MJCF path or XML string, `reward(physics)`
-    the reward of each step, `terminate(physics)` (optional) ends an episode when true.
+    """A team over a bare MuJoCo model: `model` is an MJCF path or XML string.
 
-    One env step is `substeps` physics steps of the model's own timestep. Episodes start at the
-    model's reference pose (qpos0) with uniform noise of +-`reset_noise` on every joint
-    position and `reset_noise`-scaled normal noise on every velocity.
+    - `reward`: a function of the physics, or a list of reward terms (`envs.terms`);
+      `terminate` (optional): a function that ends an episode when true, or a list of
+      termination terms.
+    - Start: the `keyframe` (by name; `home` when the model has one, else qpos0), with noise
+      that respects each joint (`model_task`): hinges and slides by up to `reset_noise` in
+      their units (at most that fraction of half their range), a free base by `root_noise`
+      (horizontal metres, radians of turn). A start pose outside a joint's range is refused.
+    - `observation` (`envs.Observation`): build observations from signals the hardware has
+      (joint encoders, IMU, sensors, contacts, command, previous action) instead of the raw
+      joint state and the root's height, orientation and velocity (`root_features`).
+    - `actions` (`envs.JointTargets`): joint targets around the start pose, with a PD layer
+      for torque motors; otherwise an action spans each actuator's control range.
+    - `commands` (`envs.terms.VelocityCommand`): a velocity command per episode.
+    One env step is `substeps` physics steps of the model's own timestep.
     """
     if not isinstance(model, str | os.PathLike):
         raise ValueError(f"model must be an MJCF file path or an XML string, got {model!r}")
@@ -303,13 +278,19 @@ def from_mjcf(
         or not 1 <= substeps <= MAX_SUBSTEPS
     ):
         raise ValueError(f"substeps must be an integer in 1..{MAX_SUBSTEPS}, got {substeps!r}")
-    if not callable(reward):
-        raise ValueError(f"reward must be a function of the physics, got {reward!r}")
-    if terminate is not None and not callable(terminate):
-        raise ValueError(f"terminate must be a function of the physics or None, got {terminate!r}")
     if not _real(reset_noise) or not 0 <= reset_noise < math.inf:
         raise ValueError(f"reset_noise must be a finite number >= 0, got {reset_noise!r}")
-    factory = ModelEnvironment(source, reward, terminate, substeps, float(reset_noise))
+    shift, turn = terms.pair(root_noise, "root_noise")
+    if shift < 0 or turn < 0:
+        raise ValueError(f"root_noise must be two numbers >= 0, got {root_noise!r}")
+    if keyframe is not None and not isinstance(keyframe, str):
+        raise ValueError(f"keyframe must be a keyframe's name or None, got {keyframe!r}")
+    if commands is not None and not isinstance(commands, terms.VelocityCommand):
+        raise ValueError(f"commands must be an envs.terms.VelocityCommand, got {commands!r}")
+    factory = ModelEnvironment(
+        source, _frozen(reward), _frozen(terminate), substeps, float(reset_noise), keyframe,
+        (shift, turn), commands,
+    )  # fmt: skip
     name = "model" if is_xml else Path(source).stem
     return from_dm_control(
         factory,
@@ -317,7 +298,14 @@ def from_mjcf(
         hops=hops,
         agent_id=agent_id,
         episode_limit=episode_limit,
-        root_features=root_features,
+        root_features=root_features and observation is None,
+        observation=observation,
+        actions=actions,
         env_id=env_id or f"mjcf:{name}",
         description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}",
     )
+
+
+def _frozen(value: Any) -> Any:
+    """A list of terms as a tuple (the recipe is frozen and hashable); anything else as is."""
+    return tuple(value) if isinstance(value, list) else value

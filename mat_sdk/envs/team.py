@@ -6,9 +6,15 @@ and builds every observation with one gather from a precomputed index table, so 
 costs little more than the physics itself.
 
 Observation of an agent, in order (each block zero-padded to the widest agent's):
-own joints' qpos | own qvel | upstream neighbours' qpos | qvel | downstream qpos | qvel |
-shared features (root height/orientation/velocities, task features) | one-hot agent id |
-position (`base.POSITIONS`, when asked for).
+own joints' positions | velocities | upstream neighbours' positions | velocities |
+downstream positions | velocities | shared features | own previous action (when observed) |
+one-hot agent id | position (`base.POSITIONS`, when asked for).
+
+The observation is gathered from named signals. By default they are MuJoCo's raw `qpos`,
+`qvel` and the task's features, and the shared features are the root's height, orientation
+and velocities; with an `Observation` (`features.py`) they are what a robot's hardware
+measures: `joint_pos` (relative to the start pose), `joint_vel`, the IMU, sensors, contacts,
+the command and the previous action. `wiring()` describes the signals for a controller.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.actuation import target_map
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
     ArrayTeam,
@@ -37,6 +44,7 @@ from mat_sdk.envs.decomposition import (
     root_feature_indices,
     root_joints,
 )
+from mat_sdk.envs.features import Signal, robot_signals
 
 if TYPE_CHECKING:
     from mat_sdk.envs.sources import RobotSpec
@@ -65,14 +73,20 @@ class RobotTeam(ArrayTeam):
         episode_limit: int | None = None,
         task: str | None = None,
         position: str | None = None,
+        command: list[float] | None = None,
     ):
         """Options left as None take the spec's (`RobotSpec.hops`, ...). `position` appends
-        an identity that does not depend on the agent count (`base.POSITIONS`)."""
+        an identity that does not depend on the agent count (`base.POSITIONS`); `command`
+        holds a robot with velocity commands at (vx, vy, yaw_rate) in every episode."""
         self.spec = spec
         self.env_id = spec.env_id
         self._env = spec.load(seed, task)
         self.physics = self._env.physics
         self._task = self._env.task
+        if command is not None:
+            if not hasattr(self._task, "set_command"):
+                raise ValueError(f"{spec.env_id} takes no command: it has no velocity commands")
+            self._task.set_command(command)
         self._model, self._data = self.physics.model.ptr, self.physics.data.ptr
         self.control_timestep = self._env.control_timestep()
         self.substeps = round(self.control_timestep / self._model.opt.timestep)
@@ -144,43 +158,59 @@ class RobotTeam(ArrayTeam):
 
     def _build_action_map(self, zeroed: set[int]) -> None:
         """Which entries of the `[n, action_width]` action array drive which actuator."""
-        driven, actuators = [], []
+        driven, full, actuators = [], [], []
         for row, agent in enumerate(self.active):
             for col, actuator in enumerate(self.team[agent].actuators):
                 if actuator not in zeroed:
                     driven.append(row * self.action_width + col)
+                    full.append(agent * self.action_width + col)
                     actuators.append(actuator)
         self._action_driven = np.array(driven, dtype=np.intp)
+        self._action_driven_full = np.array(full, dtype=np.intp)  # in [team agents, width]
         self._ctrl_index = np.array(actuators, dtype=np.intp)
         low, high = self._model.actuator_ctrlrange[self._ctrl_index].T
         self._ctrl_low, self._ctrl_half = low, (high - low) / 2
+        self._targets = None  # actions as joint targets around the start pose
+        if self.spec.actions is not None:
+            start = getattr(self._task, "start_qpos", self._model.qpos0)
+            self._targets = target_map(self._model, self._ctrl_index, start, self.spec.actions)
+        # every driven actuator's action, as the task's terms and observations see it
+        self._record = getattr(self._task, "record_action", None)
 
     def _build_observation_map(self) -> None:
-        """One index table that gathers every observation from [qpos | qvel | extra | 0 | 1]."""
+        """One index table that gathers every observation from the concatenated signals and
+        constants (0, 1, the agents' positions), less `offset` (the start pose)."""
         model = self._model
-        nq, nv = model.nq, model.nv
-        n_extra = len(self._extra_features())
-        zero, one = nq + nv + n_extra, nq + nv + n_extra + 1
+        if self.spec.observation is None:
+            signals, joint_pos, joint_vel, shared = self._joint_state_signals()
+            kinds = ("qpos", "qvel")
+        else:
+            signals, joint_pos, joint_vel, shared = self._hardware_signals()
+            kinds = ("pos", "vel")
+        starts = np.cumsum([0, *(signal.size for signal in signals)])
+        at = {signal.name: int(start) for signal, start in zip(signals, starts, strict=False)}
+        end = int(starts[-1])
+        zero, one = end, end + 1
         constants = [0.0, 1.0]  # then each agent's position features, if any
 
-        def qpos(joints):
-            return [int(i) for j in joints for i in joint_qpos_indices(model, j)]
+        def positions(joints):
+            return [at[joint_pos[0]] + i for j in joints for i in joint_pos[1](j)]
 
-        def qvel(joints):
-            return [nq + int(i) for j in joints for i in joint_dof_indices(model, j)]
+        def velocities(joints):
+            return [at[joint_vel[0]] + i for j in joints for i in joint_vel[1](j)]
 
         parts = {
             f"{field}.{kind}": [getter(getattr(member, field)) for member in self.team]
             for field in ("joints", "upstream", "downstream")
-            for kind, getter in (("qpos", qpos), ("qvel", qvel))
+            for kind, getter in zip(kinds, (positions, velocities), strict=True)
         }
         widths = {name: max(len(entries) for entries in block) for name, block in parts.items()}
-        root_qpos, root_qvel = root_feature_indices(model)
-        shared = {}
-        if self.spec.root_features:
-            shared = {"root.qpos": root_qpos.tolist(), "root.qvel": (nq + root_qvel).tolist()}
-        shared["task"] = list(range(nq + nv, nq + nv + n_extra))
-        widths |= {name: len(entries) for name, entries in shared.items()}
+        shared_entries = {
+            name: [at[signal] + i for i in index] for name, (signal, index) in shared.items()
+        }
+        widths |= {name: len(entries) for name, entries in shared_entries.items()}
+        own = next((s for s in signals if s.per_agent), None)  # each agent's previous action
+        widths |= {"last_action": self.action_width if own else 0}
         widths |= {"id": len(self.team) if self.agent_id else 0}
         widths |= {"position": self._positions.shape[1]}
         rows = []
@@ -188,30 +218,113 @@ class RobotTeam(ArrayTeam):
             row = []
             for name, block in parts.items():
                 row += block[agent] + [zero] * (widths[name] - len(block[agent]))
-            for entries in shared.values():
+            for entries in shared_entries.values():
                 row += entries
+            if own:
+                row += [
+                    at[own.name] + agent * self.action_width + k for k in range(self.action_width)
+                ]
             if self.agent_id:
                 row += [one if i == agent else zero for i in range(len(self.team))]
             for value in self._positions[agent]:
                 row.append(zero + len(constants))
                 constants.append(float(value))
             rows.append(row)
+        self._signals = signals
         self._obs_index = np.array(rows, dtype=np.intp)
         self.obs_dim = self._obs_index.shape[1]
         # the name and columns of each feature, in order (every agent's row has the same)
-        starts = np.cumsum([0, *widths.values()])
+        columns = np.cumsum([0, *widths.values()])
         self._features = [
             {"name": name, "start": int(start), "stop": int(start + width)}
-            for (name, width), start in zip(widths.items(), starts, strict=False)
+            for (name, width), start in zip(widths.items(), columns, strict=False)
             if width
         ]
-        horizontal = set(qpos(root_joints(model))) - set(root_qpos.tolist())
+        self._constants = np.array(constants)
+        self._offset = None
+        if self.spec.observation is not None:  # joint positions relative to the start pose
+            self._offset = np.zeros(end + len(constants))
+            self._offset[at["joint_pos"] : at["joint_pos"] + len(self._joints)] = (
+                self._start_of_joints
+            )
+        nq, nv, n_extra = model.nq, model.nv, len(self._extra_features())
+        root_qpos = {int(i) for j in root_joints(model) for i in joint_qpos_indices(model, j)}
+        horizontal = root_qpos - set(root_feature_indices(model)[0].tolist())
         kept_qpos = [i for i in range(nq) if i not in horizontal]
         self._state_index = np.array(
             [*kept_qpos, *range(nq, nq + nv), *range(nq + nv, nq + nv + n_extra)], dtype=np.intp
         )
         self.state_dim = len(self._state_index)
-        self._constants = np.array(constants)
+
+    def _joint_state_signals(self):
+        """MuJoCo's raw joint state: signals qpos, qvel and the task's features; the root's
+        height, orientation and velocities shared (unless the spec leaves them out)."""
+        model, data = self._model, self._data
+        extra = len(self._extra_features())
+        signals = [
+            Signal("qpos", model.nq, [], lambda: data.qpos),
+            Signal("qvel", model.nv, [], lambda: data.qvel),
+            Signal("task", extra, [], self._extra_features),
+        ]
+        root_qpos, root_qvel = root_feature_indices(model)
+        shared = {}
+        if self.spec.root_features:
+            shared = {
+                "root.qpos": ("qpos", root_qpos.tolist()),
+                "root.qvel": ("qvel", root_qvel.tolist()),
+            }
+        shared["task"] = ("task", list(range(extra)))
+        joint_pos = ("qpos", lambda j: [int(i) for i in joint_qpos_indices(model, j)])
+        joint_vel = ("qvel", lambda j: [int(i) for i in joint_dof_indices(model, j)])
+        return signals, joint_pos, joint_vel, shared
+
+    def _hardware_signals(self):
+        """What the robot's hardware measures: every non-root joint's position and velocity
+        (encoders), then the `Observation`'s whole-robot signals, then the previous action."""
+        model, data = self._model, self._data
+        roots = set(root_joints(model))
+        self._joints = [j for j in range(model.njnt) if j not in roots and model.jnt_type[j] >= 2]
+        qpos_of = np.array([model.jnt_qposadr[j] for j in self._joints], dtype=np.intp)
+        dof_of = np.array([model.jnt_dofadr[j] for j in self._joints], dtype=np.intp)
+        start = getattr(self._task, "start_qpos", model.qpos0)
+        self._start_of_joints = start[qpos_of]
+        names = [model.joint(j).name for j in self._joints]
+        slot = {joint: k for k, joint in enumerate(self._joints)}
+        signals = [
+            Signal("joint_pos", len(names), names, lambda: data.qpos[qpos_of]),
+            Signal("joint_vel", len(names), names, lambda: data.qvel[dof_of]),
+        ]
+        command = getattr(self._task, "command", np.zeros(0))
+        commands = getattr(getattr(self._task, "recipe", None), "commands", None)
+        robot = robot_signals(
+            self.spec.observation, self.physics, lambda: command, commands.names if commands else ()
+        )
+        signals += robot
+        shared = {signal.name: (signal.name, list(range(signal.size))) for signal in robot}
+        if self.spec.observation.last_action:
+            signals.append(self._last_action_signal())
+        joint = ("joint_pos", lambda j: [slot[j]])
+        velocity = ("joint_vel", lambda j: [slot[j]])
+        return signals, joint, velocity, shared
+
+    def _last_action_signal(self) -> Signal:
+        """Every agent's previous action, `[team agents x action width]` (a removed agent's
+        and padding stay 0): each agent observes its own row."""
+        width, rows = self.action_width, len(self.team)
+        last = np.zeros(rows * width)
+        source = self._action_driven_full  # driven entries of the [team agents, width] array
+        task, actuators = self._task, self._ctrl_index
+
+        def read():
+            last[source] = task.action[actuators]
+            return last
+
+        if not hasattr(task, "action"):
+            raise ValueError(
+                f"{self.env_id}: last_action needs a task that records actions (from_mjcf's)"
+            )
+        labels = [f"{agent}.{k}" for agent in self.possible_agents for k in range(width)]
+        return Signal("last_action", rows * width, labels, read, per_agent=True)
 
     def _extra_features(self) -> np.ndarray:
         features = self.spec.task_features
@@ -227,31 +340,23 @@ class RobotTeam(ArrayTeam):
 
         - per agent, the actuators and joints it drives and, per action column, the actuator
           it commands (its name and index in MuJoCo's ctrl) with
-          `ctrl = offset + scale * clip(action, -1, 1)` (`NO_ACTUATOR`: none);
-        - the observation: `obs[i, j] = source[index[i][j]]` with `source` the
-          concatenation of qpos, qvel, the task features and `constants` (0, 1, positions),
-          at the offsets in `source`, and the name and columns of each feature;
+          `ctrl = offset + scale * clip(action, -1, 1)`, clipped to [low, high] where given
+          (`NO_ACTUATOR`: none). With joint targets the value is the joint's target around
+          the start pose; a torque motor's column also gives the PD gains kp, kd that turn
+          the target into its torque on the robot;
+        - the observation: `obs[i, j] = (source - offset)[index[i][j]]` with `source` the
+          concatenation of the named signals and `constants` (0, 1, positions), at the
+          ranges in `source`; `signals` names each signal's columns; `offset` (when present)
+          holds the start pose under `joint_pos`; the name and columns of each feature;
         - the control timestep, and where the observation normaliser is."""
-        model, nq, nv = self._model, self._model.nq, self._model.nv
-        n_task = len(self._extra_features())
+        model = self._model
         drives = dict(zip(self._action_driven.tolist(), range(len(self._ctrl_index)), strict=True))
         agents = []
         for row, agent in enumerate(self.active):
             action = []
             for col in range(self.action_width):
                 k = drives.get(row * self.action_width + col)
-                if k is None:
-                    action.append(NO_ACTUATOR)
-                    continue
-                half, ctrl = float(self._ctrl_half[k]), int(self._ctrl_index[k])
-                action.append(
-                    {
-                        "actuator": _actuator_name(model, ctrl),
-                        "ctrl": ctrl,
-                        "scale": half,
-                        "offset": float(self._ctrl_low[k]) + half,
-                    }
-                )
+                action.append(NO_ACTUATOR if k is None else self._action_column(k))
             agents.append(
                 {
                     "name": self.agents[row],
@@ -260,23 +365,47 @@ class RobotTeam(ArrayTeam):
                     "action": action,
                 }
             )
-        end = nq + nv + n_task
+        source, start = {}, 0
+        for signal in self._signals:
+            source[signal.name] = [start, start + signal.size]
+            start += signal.size
+        source["constants"] = [start, start + len(self._constants)]
+        observation = {
+            "features": self._features,
+            "source": source,
+            "constants": self._constants.tolist(),
+            "index": self._obs_index.tolist(),
+        }
+        if self._offset is not None:
+            observation["offset"] = self._offset.tolist()
+            observation["signals"] = {signal.name: signal.labels for signal in self._signals}
         return {
             "control_timestep": float(self.control_timestep),
             "physics_timestep": float(model.opt.timestep),
             "agents": agents,
-            "observation": {
-                "features": self._features,
-                "source": {
-                    "qpos": [0, nq],
-                    "qvel": [nq, nq + nv],
-                    "task": [nq + nv, end],
-                    "constants": [end, end + len(self._constants)],
-                },
-                "constants": self._constants.tolist(),
-                "index": self._obs_index.tolist(),
-            },
+            "observation": observation,
         }
+
+    def _action_column(self, k: int) -> dict:
+        """The wiring of driven actuator k (`wiring`)."""
+        ctrl = int(self._ctrl_index[k])
+        column = {"actuator": _actuator_name(self._model, ctrl), "ctrl": ctrl}
+        if self._targets is None:
+            half = float(self._ctrl_half[k])
+            return {**column, "scale": half, "offset": float(self._ctrl_low[k]) + half}
+        targets = self._targets
+        column |= {
+            "scale": targets.scale,
+            "offset": float(targets.offset[k]),
+            "target": self._model.joint(int(self._model.actuator_trnid[ctrl, 0])).name,
+        }
+        if targets.pd:
+            return {**column, "kp": targets.kp, "kd": targets.kd,
+                    "torque": [float(targets.low[k]), float(targets.high[k])]}  # fmt: skip
+        low, high = (
+            float(v) if np.isfinite(v) else None for v in (targets.low[k], targets.high[k])
+        )
+        return {**column, "low": low, "high": high}
 
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
@@ -292,13 +421,23 @@ class RobotTeam(ArrayTeam):
         flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
         np.minimum(flat, 1.0, out=flat)
         np.maximum(flat, -1.0, out=flat)
-        self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
+        if self._record is not None:
+            self._record(self._ctrl_index, flat)
         time_before = self._data.time
-        # dm_control's legacy step: positions and sensors are up to date for the reward.
-        mujoco.mj_step2(self._model, self._data)
-        if self.substeps > 1:
-            mujoco.mj_step(self._model, self._data, self.substeps - 1)
-        mujoco.mj_step1(self._model, self._data)
+        if self._targets is None:
+            self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
+            self._physics_step()
+        elif not self._targets.pd:
+            targets = self._targets.targets(flat)
+            self._data.ctrl[self._ctrl_index] = np.clip(
+                targets, self._targets.low, self._targets.high
+            )
+            self._physics_step()
+        else:  # a PD layer at the physics rate turns the targets into torques
+            targets = self._targets.targets(flat)
+            for substep in range(self.substeps):
+                self._data.ctrl[self._ctrl_index] = self._targets.torques(self._data, targets)
+                self._physics_step(1, first=substep == 0, last=substep == self.substeps - 1)
         self._steps += 1
         obs, reward = self.observe(), float(self._reward(self.physics))
         step, substep = self.control_timestep, self._model.opt.timestep
@@ -308,10 +447,23 @@ class RobotTeam(ArrayTeam):
         terminated = self._task.get_termination(self.physics) is not None
         return obs, reward, terminated, self._steps >= self.episode_limit
 
+    def _physics_step(self, substeps: int | None = None, first=True, last=True) -> None:
+        """`substeps` physics steps the way dm_control's legacy step takes them: the first
+        finishes the step the last `mj_step1` began, and the last begins the next one, so
+        positions and sensors are up to date for the reward."""
+        substeps = self.substeps if substeps is None else substeps
+        if first:
+            mujoco.mj_step2(self._model, self._data)
+            substeps -= 1
+        if substeps > 0:
+            mujoco.mj_step(self._model, self._data, substeps)
+        if last:
+            mujoco.mj_step1(self._model, self._data)
+
     def observe(self) -> np.ndarray:
-        source = np.concatenate(
-            (self._data.qpos, self._data.qvel, self._extra_features(), self._constants)
-        )
+        source = np.concatenate([signal.read() for signal in self._signals] + [self._constants])
+        if self._offset is not None:
+            source -= self._offset
         return source[self._obs_index].astype(np.float32)
 
     def get_state(self) -> dict:
@@ -323,6 +475,7 @@ class RobotTeam(ArrayTeam):
             "geom_pos": self._model.geom_pos.copy(),  # tasks place targets here at reset
             "random": self._task._random.get_state(),
             "steps": self._steps,
+            **({"task": self._task.get_state()} if hasattr(self._task, "get_state") else {}),
         }
 
     def set_state(self, state: dict) -> None:
@@ -330,6 +483,8 @@ class RobotTeam(ArrayTeam):
         self._model.geom_pos[:] = state["geom_pos"]
         self._task._random.set_state(state["random"])
         self._steps = int(state["steps"])
+        if "task" in state:
+            self._task.set_state(state["task"])
         mujoco.mj_forward(self._model, self._data)
 
     def state(self) -> np.ndarray:

@@ -1,0 +1,261 @@
+"""A bare MJCF model as a dm_control environment (`from_mjcf`): a start pose, a reward, an end.
+
+Episodes start from the model's keyframe (`home` when it has one, else `qpos0`) with noise
+that respects each joint: a hinge or slide moves by up to `reset_noise` in its own units,
+never more than `reset_noise` times half its range, and stays inside the range; a free
+joint (a floating base) moves horizontally and turns only when asked (`root_noise`), its
+quaternion staying a unit rotation; velocities of hinges and slides get normal noise of the
+same scale. The reward is the user's function of the physics, or a list of `terms`; so is
+the termination. A `VelocityCommand` is sampled per episode.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+import numpy as np
+from dm_control import mujoco as dm_mujoco
+from dm_control.rl import control
+from dm_control.suite import base
+
+from mat_sdk.envs import terms
+from mat_sdk.envs.base import user_call
+from mat_sdk.envs.trunk import Trunk, geom_ids
+
+HOME = "home"  # the keyframe a start defaults to, by Menagerie's convention
+_FREE, _BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
+
+
+@dataclass(frozen=True)
+class ModelEnvironment:
+    """A picklable recipe for a dm_control environment from an MJCF model and a reward."""
+
+    model: str  # a path to the XML file, or the XML itself
+    reward: Callable[[Any], float] | tuple[terms.Term, ...]
+    terminate: Callable[[Any], bool] | tuple | None = None
+    substeps: int = 1
+    reset_noise: float = 0.1
+    keyframe: str | None = None  # None: HOME when the model has it, else qpos0
+    root_noise: tuple[float, float] = (0.0, 0.0)  # a free base's (position m, turn rad)
+    commands: terms.VelocityCommand | None = None
+
+    def physics(self) -> dm_mujoco.Physics:
+        """The compiled model; a path keeps its directory for included files and meshes."""
+        xml = self.model.lstrip().startswith("<")
+        try:
+            if xml:
+                return dm_mujoco.Physics.from_xml_string(self.model)
+            return dm_mujoco.Physics.from_xml_path(self.model)
+        except Exception as error:  # MuJoCo's parser and compiler: ValueError, Error, ...
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:300]
+            name = "the model XML" if xml else self.model
+            raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
+
+    def __call__(self, seed: int | None) -> control.Environment:
+        physics = self.physics()
+        task = ModelTask(self, physics, np.random.RandomState(seed))
+        return control.Environment(physics, task, n_sub_steps=self.substeps)  # no time limit
+
+
+def start_pose(model: mujoco.MjModel, keyframe: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(qpos, ctrl) an episode starts from: the keyframe's (by name; HOME by default when the
+    model has one), else qpos0 and zero controls. Refuses a pose outside a joint's range."""
+    name = HOME if keyframe is None else keyframe
+    key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, name)
+    if key < 0 and keyframe is not None:
+        keys = [model.key(i).name for i in range(model.nkey)]
+        raise ValueError(
+            f"the model has no keyframe named {keyframe!r}; its keyframes: "
+            f"{', '.join(keys) or 'none'}"
+        )
+    if key >= 0:
+        qpos, ctrl = model.key_qpos[key].copy(), model.key_ctrl[key].copy()
+    else:
+        qpos, ctrl = model.qpos0.copy(), np.zeros(model.nu)
+    where = f"keyframe {name!r}" if key >= 0 else "qpos0 (the model has no home keyframe)"
+    for joint in _ranged_joints(model):
+        low, high = model.jnt_range[joint]
+        value = qpos[model.jnt_qposadr[joint]]
+        if not low - 1e-6 <= value <= high + 1e-6:
+            raise ValueError(
+                f"the start pose ({where}) puts joint {model.joint(joint).name!r} at {value:g}, "
+                f"outside its range [{low:g}, {high:g}]; give a keyframe whose pose is in "
+                "range (keyframe=...)"
+            )
+    return qpos, ctrl
+
+
+def _ranged_joints(model: mujoco.MjModel) -> list[int]:
+    return [
+        j
+        for j in range(model.njnt)
+        if model.jnt_limited[j] and model.jnt_type[j] not in (_FREE, _BALL)
+    ]
+
+
+class ModelTask(base.Task):
+    """The task of a `ModelEnvironment`: start pose and noise, reward, termination, commands;
+    it also keeps the actions of this step and the one before, for terms and observations."""
+
+    def __init__(self, recipe: ModelEnvironment, physics, random):
+        super().__init__(random=random)
+        self.recipe = recipe
+        model = physics.model.ptr
+        check_terms(recipe.reward, recipe.terminate, model)
+        self.start_qpos, self.start_ctrl = start_pose(model, recipe.keyframe)
+        self._noise_scale = _noise_scales(model, recipe.reset_noise)
+        self.command = np.zeros(3 if recipe.commands else 0)
+        self.fixed_command: np.ndarray | None = None
+        # per actuator, in [-1, 1]: this step's action and the step's before
+        self.action, self.previous_action = np.zeros(model.nu), np.zeros(model.nu)
+        uses_terms = not callable(recipe.reward) or (
+            recipe.terminate is not None and not callable(recipe.terminate)
+        )
+        self._step = None
+        if uses_terms:
+            trunk = Trunk(model)
+            self._step = terms.Step(
+                physics.data.ptr, model, trunk, self.command, self.action,
+                self.previous_action, physics.model.opt.timestep * recipe.substeps,
+            )  # fmt: skip
+
+    # ---------------------------------------------------------------- episodes
+    def initialize_episode(self, physics) -> None:
+        model, data = physics.model.ptr, physics.data.ptr
+        position = self.random.uniform(-1.0, 1.0, model.nq)
+        velocity = self.random.standard_normal(model.nv)
+        scale_q, scale_v = self._noise_scale
+        qpos = self.start_qpos + scale_q * position
+        for joint in _ranged_joints(model):  # noise never leaves a joint's range
+            address = model.jnt_qposadr[joint]
+            qpos[address] = np.clip(qpos[address], *model.jnt_range[joint])
+        data.qpos[:] = qpos
+        data.qvel[:] = scale_v * velocity
+        data.ctrl[:] = self.start_ctrl
+        self._turn_free_joints(model, data)
+        self.action[:] = 0.0
+        self.previous_action[:] = 0.0
+        if self.recipe.commands is not None:
+            command = self.recipe.commands.sample(self.random)
+            self.command[:] = command if self.fixed_command is None else self.fixed_command
+        super().initialize_episode(physics)
+
+    def _turn_free_joints(self, model, data) -> None:
+        """A floating base moves horizontally by up to root_noise[0] m and turns by up to
+        root_noise[1] rad about a random axis; its quaternion stays a unit rotation."""
+        shift, turn = self.recipe.root_noise
+        if not (shift or turn):
+            return
+        for joint in range(model.njnt):
+            if model.jnt_type[joint] != _FREE:
+                continue
+            address = model.jnt_qposadr[joint]
+            data.qpos[address : address + 2] += self.random.uniform(-shift, shift, 2)
+            axis = self.random.standard_normal(3)
+            axis /= np.linalg.norm(axis)
+            rotation = np.zeros(4)
+            mujoco.mju_axisAngle2Quat(rotation, axis, self.random.uniform(-turn, turn))
+            turned = np.zeros(4)
+            mujoco.mju_mulQuat(turned, rotation, data.qpos[address + 3 : address + 7])
+            mujoco.mju_normalize4(turned)
+            data.qpos[address + 3 : address + 7] = turned
+
+    def record_action(self, actuators: np.ndarray, actions: np.ndarray) -> None:
+        """This step's actions of the driven `actuators` (clipped to [-1, 1]; the others 0)."""
+        self.previous_action[:] = self.action
+        self.action[:] = 0.0
+        self.action[actuators] = actions
+
+    def set_command(self, command) -> None:
+        """Hold the command at `command` (vx, vy, yaw_rate) in every episode (evaluation)."""
+        if self.recipe.commands is None:
+            raise ValueError("the command option is for envs with commands (from_mjcf commands=)")
+        self.fixed_command = self.recipe.commands.check(command)
+        self.command[:] = self.fixed_command
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        return {"command": self.command.copy(), "action": self.action.copy(),
+                "previous_action": self.previous_action.copy()}  # fmt: skip
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        for name in ("command", "action", "previous_action"):
+            getattr(self, name)[:] = state[name]
+
+    # ---------------------------------------------------------------- dm_control's Task
+    def get_observation(self, physics) -> dict:
+        return {"qpos": physics.data.qpos.copy(), "qvel": physics.data.qvel.copy()}
+
+    def get_reward(self, physics) -> float:
+        reward = self.recipe.reward
+        if callable(reward):
+            return float(user_call(reward, "reward function", physics))
+        return float(sum(term.weight * term.value(self._step) for term in reward))
+
+    def get_termination(self, physics) -> float | None:
+        terminate = self.recipe.terminate
+        if terminate is None:
+            return None
+        if callable(terminate):
+            ended = user_call(terminate, "terminate", physics)
+        else:
+            ended = any(term.ends(self._step) for term in terminate)
+        return 0.0 if ended else None
+
+
+def _noise_scales(model: mujoco.MjModel, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per qpos and per dof: how far `reset_noise` moves each. Hinges and slides: `noise` in
+    their units, at most `noise` x half their range; free and ball joints: not at all (their
+    noise is `root_noise`)."""
+    scale_q, scale_v = np.zeros(model.nq), np.zeros(model.nv)
+    for joint in range(model.njnt):
+        if model.jnt_type[joint] in (_FREE, _BALL):
+            continue
+        scale = noise
+        if model.jnt_limited[joint]:
+            low, high = model.jnt_range[joint]
+            scale = noise * min(1.0, (high - low) / 2)
+        scale_q[model.jnt_qposadr[joint]] = scale
+        scale_v[model.jnt_dofadr[joint]] = scale
+    return scale_q, scale_v
+
+
+def check_terms(reward: Any, terminate: Any, model: mujoco.MjModel) -> None:
+    """Refuse rewards and terminations that are neither functions nor lists of terms, and
+    terms that name what the model does not have, before any episode runs."""
+    if not callable(reward):
+        if not _terms_of(reward, terms.Term):
+            raise ValueError(
+                f"reward must be a function of the physics or a list of reward terms "
+                f"(mat_sdk.envs.terms), got {reward!r}"
+            )
+        weights = [term.weight for term in reward]
+        if not all(isinstance(w, int | float) and math.isfinite(w) for w in weights):
+            raise ValueError(f"reward terms' weights must be finite numbers, got {weights}")
+    if (
+        terminate is not None
+        and not callable(terminate)
+        and not _terms_of(terminate, terms.TERMINATIONS)
+    ):
+        raise ValueError(
+            "terminate must be a function of the physics, a list of termination terms "
+            f"(mat_sdk.envs.terms), or None, got {terminate!r}"
+        )
+    uses_terms = not callable(reward) or (terminate is not None and not callable(terminate))
+    if uses_terms:
+        Trunk(model)  # terms read the floating base: it must exist
+    for term in () if terminate is None or callable(terminate) else terminate:
+        if isinstance(term, terms.IllegalContact):
+            geom_ids(model, term.names, "illegal contact")
+
+
+def _terms_of(value: Any, kinds) -> bool:
+    return (
+        isinstance(value, Sequence)
+        and not isinstance(value, str)
+        and len(value) > 0
+        and all(isinstance(term, kinds) for term in value)
+    )

@@ -1,0 +1,253 @@
+"""Reusable task terms for legged and other floating-base robots: rewards, terminations and
+velocity commands, composed in `from_mjcf` without physics code.
+
+    envs.from_mjcf(
+        "go2.xml", layout,
+        reward=[terms.TrackVelocity(1.0), terms.TrackYawRate(0.5), terms.Upright(1.0),
+                terms.ActionRate(0.01), terms.Torque(2e-4)],
+        terminate=[terms.TrunkHeight(0.15), terms.Tilt(60)],
+        commands=terms.VelocityCommand(vx=(0.0, 1.0)),
+    )
+
+A reward term's `value(step)` is what it measures, signed so that more is better (penalties
+are <= 0); the step's reward is the sum of `weight * value`. A termination term's
+`ends(step)` says whether the episode ends. `step` is a `Step`: the state after the env step,
+the command, and the actions of this step and the one before.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from mat_sdk.envs.trunk import Contacts, Trunk
+
+
+@dataclass
+class Step:
+    """What terms read after an env step (the task keeps it up to date), and what they
+    derive from the model once (`cached`)."""
+
+    data: mujoco.MjData
+    model: mujoco.MjModel
+    trunk: Trunk
+    command: np.ndarray  # the episode's command (empty without commands)
+    action: np.ndarray  # this step's action of every actuator, in [-1, 1] (undriven: 0)
+    previous_action: np.ndarray
+    control_timestep: float
+    _cache: dict = field(default_factory=dict)
+
+    def cached(self, key, make):
+        """`make(model)`, computed once per key."""
+        if key not in self._cache:
+            self._cache[key] = make(self.model)
+        return self._cache[key]
+
+
+@dataclass(frozen=True)
+class VelocityCommand:
+    """A base velocity to follow, sampled per episode from the task's seeded stream: forward
+    `vx` and sideways `vy` (m/s, in the base's frame) and `yaw_rate` (rad/s), each uniform in
+    its (low, high) range. Every agent observes it (signal `command`); a controller passes the
+    operator's command in its place."""
+
+    vx: tuple[float, float] = (0.0, 0.0)
+    vy: tuple[float, float] = (0.0, 0.0)
+    yaw_rate: tuple[float, float] = (0.0, 0.0)
+    names = ("vx", "vy", "yaw_rate")
+
+    def __post_init__(self):
+        for name in self.names:
+            low, high = pair(getattr(self, name), f"VelocityCommand.{name}")
+            object.__setattr__(self, name, (low, high))
+
+    def sample(self, random: np.random.RandomState) -> np.ndarray:
+        low, high = np.array([getattr(self, name) for name in self.names]).T
+        return low + (high - low) * random.uniform(size=3)
+
+    def check(self, command) -> np.ndarray:
+        """A fixed command given as an env option (evaluation at one speed): three numbers."""
+        value = np.asarray(command, dtype=np.float64) if command is not None else None
+        if value is None or value.shape != (3,) or not np.isfinite(value).all():
+            raise ValueError(
+                f"command must be three finite numbers ({', '.join(self.names)}), got {command!r}"
+            )
+        return value
+
+
+def pair(value, name: str) -> tuple[float, float]:
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a (low, high) pair, got {value!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
+    return low, high
+
+
+# ------------------------------------------------------------------------- rewards
+@dataclass(frozen=True)
+class Term:
+    """A reward term: `weight * value(step)` is added to the step's reward."""
+
+    weight: float = 1.0
+
+    def value(self, step: Step) -> float:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Alive(Term):
+    """1 for every step the robot has not fallen (an episode that ends early loses it)."""
+
+    def value(self, step: Step) -> float:
+        return 1.0
+
+
+@dataclass(frozen=True)
+class ForwardVelocity(Term):
+    """The base's forward speed (m/s, along its own x axis, level): moving forward pays."""
+
+    def value(self, step: Step) -> float:
+        return float(step.trunk.velocity(step.data)[0])
+
+
+@dataclass(frozen=True)
+class TrackVelocity(Term):
+    """How closely the base's horizontal velocity (its frame) follows the command's vx, vy:
+    exp(-error^2 / sigma), 1 when exact."""
+
+    sigma: float = 0.25
+
+    def value(self, step: Step) -> float:
+        error = step.trunk.velocity(step.data)[:2] - step.command[:2]
+        return float(np.exp(-(error @ error) / self.sigma))
+
+
+@dataclass(frozen=True)
+class TrackYawRate(Term):
+    """How closely the base's yaw rate follows the command's: exp(-error^2 / sigma)."""
+
+    sigma: float = 0.25
+
+    def value(self, step: Step) -> float:
+        error = step.trunk.angular_velocity(step.data)[2] - step.command[2]
+        return float(np.exp(-(error**2) / self.sigma))
+
+
+@dataclass(frozen=True)
+class Upright(Term):
+    """Minus the squared horizontal part of gravity in the base frame: 0 when level."""
+
+    def value(self, step: Step) -> float:
+        tilt = step.trunk.gravity(step.data)[:2]
+        return -float(tilt @ tilt)
+
+
+@dataclass(frozen=True)
+class VerticalVelocity(Term):
+    """Minus the base's squared vertical speed: a smooth gait does not bounce."""
+
+    def value(self, step: Step) -> float:
+        return -float(step.trunk.world_velocity(step.data)[2] ** 2)
+
+
+@dataclass(frozen=True)
+class RollPitchRate(Term):
+    """Minus the base's squared roll and pitch rates."""
+
+    def value(self, step: Step) -> float:
+        rates = step.trunk.angular_velocity(step.data)[:2]
+        return -float(rates @ rates)
+
+
+@dataclass(frozen=True)
+class BaseHeight(Term):
+    """Minus the squared distance of the base's height from `target` (m)."""
+
+    target: float = 0.3
+
+    def value(self, step: Step) -> float:
+        return -float((step.trunk.height(step.data) - self.target) ** 2)
+
+
+@dataclass(frozen=True)
+class Torque(Term):
+    """Minus the sum of squared actuator forces (N m): effort costs."""
+
+    def value(self, step: Step) -> float:
+        force = step.data.actuator_force
+        return -float(force @ force)
+
+
+@dataclass(frozen=True)
+class Energy(Term):
+    """Minus the mechanical power of the actuated joints, sum |force * joint velocity| (W)."""
+
+    def value(self, step: Step) -> float:
+        return -float(np.abs(step.data.qfrc_actuator * step.data.qvel).sum())
+
+
+@dataclass(frozen=True)
+class ActionRate(Term):
+    """Minus the squared change of every action since the step before: smooth commands."""
+
+    def value(self, step: Step) -> float:
+        change = step.action - step.previous_action
+        return -float(change @ change)
+
+
+@dataclass(frozen=True)
+class JointLimits(Term):
+    """Minus how far hinge and slide joints are past `fraction` of their range (in joint
+    units, summed): staying off the mechanical stops."""
+
+    fraction: float = 0.9
+
+    def value(self, step: Step) -> float:
+        address, middle, half = step.cached(("limits", self.fraction), self._limits)
+        return -float(np.maximum(np.abs(step.data.qpos[address] - middle) - half, 0.0).sum())
+
+    def _limits(self, model):
+        slide = int(mujoco.mjtJoint.mjJNT_SLIDE)  # slides and hinges come after it
+        limited = model.jnt_limited.astype(bool) & (model.jnt_type >= slide)
+        low, high = model.jnt_range[limited].T
+        return model.jnt_qposadr[limited], (low + high) / 2, (high - low) / 2 * self.fraction
+
+
+# ------------------------------------------------------------------------- terminations
+@dataclass(frozen=True)
+class TrunkHeight:
+    """End the episode when the base is lower than `minimum` (m): it fell."""
+
+    minimum: float = 0.15
+
+    def ends(self, step: Step) -> bool:
+        return step.trunk.height(step.data) < self.minimum
+
+
+@dataclass(frozen=True)
+class Tilt:
+    """End the episode when the base tilts more than `degrees` from upright."""
+
+    degrees: float = 60.0
+
+    def ends(self, step: Step) -> bool:
+        return -step.trunk.gravity(step.data)[2] < math.cos(math.radians(self.degrees))
+
+
+@dataclass(frozen=True)
+class IllegalContact:
+    """End the episode when any of these geoms or bodies (trunk, thighs) touches anything."""
+
+    names: tuple[str, ...] = ()
+
+    def ends(self, step: Step) -> bool:
+        contacts = step.cached(("contacts", self.names), lambda m: Contacts(m, self.names))
+        return bool(contacts.read(step.data).any())
+
+
+TERMINATIONS = (TrunkHeight, Tilt, IllegalContact)
