@@ -1,6 +1,6 @@
 """A real robot as a MAT SDK env: MuJoCo Menagerie's Unitree Go2, one agent per leg.
 
-    PYTHONPATH=examples mat train go2:walk --steps 3000000 --out runs/go2   # (recipe: docs/REAL_ROBOTS.md)
+    PYTHONPATH=examples mat train go2:walk --out runs/go2 ...   # the recipe: docs/REAL_ROBOTS.md
 
 Each leg is an agent that drives its hip (abduction), thigh and calf. Episodes start from the
 model's `home` keyframe; an action is a joint target around that pose; each agent observes

@@ -237,8 +237,10 @@ def parse_counts(text: str, option: str) -> tuple[int, ...]:
     return counts
 
 
-def parse_settings(values: tuple[str, ...], own: dict[str, str] | None = None) -> dict:
-    """`("lr=3e-4", "shuffle_agents=true")` -> typed values for `TrainConfig` fields.
+def parse_settings(
+    values: tuple[str, ...], own: dict[str, str] | None = None, param_hint: str = "--set"
+) -> dict:
+    """`("lr=3e-4", "shuffle_agents=true")` -> typed values (JSON, else the text).
 
     `own`: the fields this command sets through options of their own (field -> option); a
     `--set` of one of them is refused, since the two would contradict each other.
@@ -247,11 +249,11 @@ def parse_settings(values: tuple[str, ...], own: dict[str, str] | None = None) -
     for value in values:
         key, sep, raw = value.partition("=")
         if not sep:
-            raise click.BadParameter(f"{value!r}: use KEY=VALUE", param_hint="--set")
+            raise click.BadParameter(f"{value!r}: use KEY=VALUE", param_hint=param_hint)
         if own and key in own:
             raise click.BadParameter(
                 f"{value!r}: {key} has an option of its own; use {own[key]} instead",
-                param_hint="--set",
+                param_hint=param_hint,
             )
         try:
             settings[key] = json.loads(raw)
@@ -530,6 +532,13 @@ def train(
         context = click.get_current_context()
         asked |= _tuned(context, asked, out, tune, free_cores=usable_cores() - 1)
         trainer = Trainer(asked.pop("env"), asked.pop("algo"), out_dir=out, **asked)
+    planned = trainer.planned_steps(steps)
+    if planned != steps and planned > trainer.progress["steps"]:
+        per_update = trainer.config.num_envs * trainer.config.rollout_length
+        click.echo(
+            f"--steps {steps:,}: training runs whole updates of {per_update:,} env steps "
+            f"(num_envs x rollout_length), so this run ends at {planned:,} steps"
+        )
     again = f"mat train {' '.join(env_ids)} --out {out} --steps {steps} --resume"
     again += f" --workers {workers}" if workers else ""
     if trainer.config.update_workers:
@@ -725,20 +734,27 @@ def _resume_overrides(ckpt: Path, given: dict) -> dict:
     "--video", type=click.Path(dir_okay=False), help="Record the first episode to FILE.mp4."
 )
 @click.option("--seed", default=10_000, show_default=True)
+@click.option(
+    "--env-option", "env_options", multiple=True, metavar="KEY=VALUE",
+    help="Change an env option for this evaluation (JSON value), e.g. command=[0.7,0,0].",
+)  # fmt: skip
 @trust_option()
 @user_errors
-def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed, trust_env_code) -> None:
-    """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default).
+def evaluate(
+    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, trust_env_code
+) -> None:
+    """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default),
+    episodes that ended early (a robot's fall), and a floating-base robot's forward speed.
 
-    Example: mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
+    \b
+    Examples:
+      mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
+      mat eval runs/go2/checkpoint.pt --env-option 'command=[0.7,0,0]' --trust-env-code
     """
-    import numpy as np
-
-    from mat_sdk.evaluation import LoadedPolicy
-    from mat_sdk.evaluation import evaluate as run
+    from mat_sdk.evaluation import LoadedPolicy, evaluate_episodes
 
     loaded = LoadedPolicy.from_checkpoint(checkpoint)
-    returns = run(
+    result = evaluate_episodes(
         loaded,
         episodes,
         env_id=env_id,
@@ -747,11 +763,10 @@ def evaluate(checkpoint, episodes, env_id, faults, stochastic, video, seed, trus
         seed=seed,
         video=video,
         trust_env_code=trust_env_code,
+        **parse_settings(env_options, param_hint="--env-option"),
     )
     name = env_id or loaded.config["train"]["env"]
-    click.echo(
-        f"{name}: return {np.mean(returns):.2f} +- {np.std(returns):.2f} over {episodes} episodes"
-    )
+    click.echo(f"{name}: {result.summary()}")
     if video:
         click.echo(f"video: {video}")
 

@@ -107,6 +107,32 @@ def check_compatible(policy: Policy, vec: Any, env_id: str) -> None:
         )
 
 
+@dataclass
+class Episodes:
+    """Full episodes of a policy: per episode its return, length, whether it ended early (a
+    termination such as a fall, not the time limit) and, for a robot with a floating base,
+    its mean forward speed (m/s along the start heading; NaN otherwise)."""
+
+    returns: list[float]
+    lengths: list[int]
+    ended: list[bool]
+    speeds: list[float]
+
+    def summary(self) -> str:
+        """One line: return mean +- std, early ends, mean speed where there is one."""
+        line = (
+            f"return {np.mean(self.returns):.2f} +- {np.std(self.returns):.2f} over "
+            f"{len(self.returns)} episodes"
+        )
+        if any(self.ended):
+            line += f"; {sum(self.ended)} ended early (fell or failed)"
+        if not np.isnan(self.speeds).all():
+            line += (
+                f"; forward speed {np.nanmean(self.speeds):.3f} +- {np.nanstd(self.speeds):.3f} m/s"
+            )
+        return line
+
+
 def evaluate(
     loaded: LoadedPolicy,
     episodes: int = 10,
@@ -118,7 +144,26 @@ def evaluate(
     trust_env_code: bool = False,
     **env_options: Any,
 ) -> list[float]:
-    """Returns of `episodes` full episodes, one per env copy, each copy's first episode.
+    """Returns of `episodes` full episodes (`evaluate_episodes`)."""
+    return evaluate_episodes(
+        loaded, episodes, env_id, faults, deterministic, seed, video, trust_env_code,
+        **env_options,
+    ).returns  # fmt: skip
+
+
+def evaluate_episodes(
+    loaded: LoadedPolicy,
+    episodes: int = 10,
+    env_id: str | None = None,
+    faults: Mapping[str, str] | None = None,
+    deterministic: bool = True,
+    seed: int = 10_000,
+    video: str | Path | None = None,
+    trust_env_code: bool = False,
+    **env_options: Any,
+) -> Episodes:
+    """`episodes` full episodes, one per env copy, each copy's first episode; `env_options`
+    override the trained env's (e.g. a robot's fixed `command`).
 
     Without `env_id`, the env the policy was trained on; a `module:function` id that the
     checkpoint records is imported only with `trust_env_code=True`."""
@@ -136,7 +181,8 @@ def evaluate(
     with envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec:
         check_compatible(loaded.policy, vec, env_id)
         obs = vec.reset(seed=seed)
-        returns = np.full(episodes, np.nan)
+        returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)
+        lengths, ended = np.zeros(episodes, dtype=np.int64), np.zeros(episodes, dtype=bool)
         frames = []
         recorder = envs.make_team(env_id, faults=faults, seed=seed, **options) if video else None
         if recorder is not None:
@@ -147,12 +193,16 @@ def evaluate(
             if recorder is not None and len(frames) < recorder.episode_limit:
                 frames.append(recorder.render())
                 recorder.step(actions[0])
-            obs, _, _, _, info = vec.step(actions)
+            obs, _, terminated, _, info = vec.step(actions)
             first = info["done"] & np.isnan(returns)
             returns[first] = info["episode_return"][first]
+            lengths[first], ended[first] = info["episode_length"][first], terminated[first]
+            travel[first] = info["episode_travel"][first]
+        timestep = vec.control_timestep
     if video:
         write_video(frames, video, fps=round(1 / recorder.control_timestep))
-    return returns.tolist()
+    speeds = travel / np.maximum(lengths * timestep, 1e-9)
+    return Episodes(returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist())
 
 
 def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Path:

@@ -159,8 +159,7 @@ class Trainer:
         self.gradients.start()  # the update workers start up during the first rollout
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         done = self.progress["steps"]
-        end = done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
-        bar = ProgressBar(end, done, progress_bar)  # whole updates: may end past total_steps
+        bar = ProgressBar(self.planned_steps(total_steps), done, progress_bar)
         try:
             while self.progress["steps"] < total_steps:
                 start = time.perf_counter()
@@ -188,6 +187,13 @@ class Trainer:
             if log:
                 log.close()
         return self
+
+    def planned_steps(self, total_steps: int) -> int:
+        """The env steps `learn(total_steps)` ends at: training runs whole updates of
+        num_envs x rollout_length steps, so it may go past `total_steps`."""
+        per_update = self.config.num_envs * self.config.rollout_length
+        done = self.progress["steps"]
+        return done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
 
     @torch.no_grad()
     def rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:

@@ -1,17 +1,23 @@
 """A bundle's wiring: how the policy's arrays map onto the robot's sensors and actuators.
 
     policy = Policy.load("cheetah_onnx")
-    print(policy.describe())                                  # agents, actuators, layout
+    print(policy.describe())                                  # agents, actuators, signals
     wiring = policy.wiring                                    # None for bundles without one
     obs = wiring.observe(data.qpos, data.qvel)                # [n, obs_dim], no torch, no env
+    obs = wiring.observe(joint_pos=enc, joint_vel=vel, gravity=g, gyro=w, command=cmd, ...)
     index, values = wiring.commands(policy.act(obs))          # data.ctrl[index] = values
 
 The manifest's `wiring` field (written by `mat export` for robots) holds, per agent, the
-actuators and joints it drives and each action column's `ctrl = offset + scale * clip(a)`;
-the observation as an index table into qpos | qvel | task features | constants, with the
+actuators and joints it drives and each action column's `ctrl = offset + scale * clip(a)`
+(clipped to the column's low / high; for a torque motor, the joint target and the PD gains
+that turn it into torque); the observation as an index table into the concatenated named
+signals and constants, less an offset (the start pose of the joint positions), with the
 name and columns of each feature; the control timestep; and where the observation
-normaliser is (inside the graphs, which take raw observations). Every field is checked here
-before use; a bundle without `wiring` still loads.
+normaliser is (inside the graphs, which take raw observations). A robot built from joint
+state has the signals qpos, qvel and task (its features); one built from its hardware's
+signals (`mat_sdk.envs.Observation`) has joint_pos, joint_vel, gravity, gyro, contacts,
+command, last_action, ... as `describe()` lists them. Every field is checked here before
+use; a bundle without `wiring` still loads.
 """
 
 from __future__ import annotations
@@ -21,8 +27,6 @@ from typing import Any
 import numpy as np
 
 from mat_runtime.manifest import _fail, integer, real, string, strings
-
-_SOURCES = ("qpos", "qvel", "task", "constants")
 
 
 def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> None:
@@ -55,15 +59,22 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
                 need(f"{field}.{key}", real(column.get(key)))
             if column.get("ctrl") is not None:
                 need(f"{field}.ctrl", integer(0)(column["ctrl"]))
+            for key in ("low", "high", "kp", "kd"):
+                if column.get(key) is not None:
+                    need(f"{field}.{key}", real(column[key]))
     observation = wiring.get("observation")
     if observation is None:
         return
     need("observation", None if isinstance(observation, dict) else "must be an object")
     source = observation.get("source")
-    if not isinstance(source, dict) or set(source) != set(_SOURCES):
-        need("observation.source", f"must give the ranges of {list(_SOURCES)}, got {source!r}")
+    if (
+        not isinstance(source, dict)
+        or list(source)[-1:] != ["constants"]
+        or not all(isinstance(name, str) and name for name in source)
+    ):
+        need("observation.source", f"must give named signal ranges, constants last, got {source!r}")
     end = 0
-    for name in _SOURCES:
+    for name in source:
         span = source[name]
         valid = isinstance(span, list) and len(span) == 2 and all(not integer(0)(v) for v in span)
         if not valid or span[0] != end or span[1] < span[0]:
@@ -80,6 +91,11 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
     flat = [v for row in index for v in row]
     if any(isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < end for v in flat):
         need("observation.index", f"must hold integers in 0..{end - 1}")
+    offset = observation.get("offset")
+    if offset is not None and (
+        not isinstance(offset, list) or len(offset) != end or any(map(real, offset))
+    ):
+        need("observation.offset", f"must be {end} finite numbers, got {str(offset)[:80]}")
     features = observation.get("features")
     if not isinstance(features, list):
         need("observation.features", f"must be a list, got {features!r}")
@@ -107,55 +123,101 @@ class Wiring:
         self.ctrl_index = np.array([c["ctrl"] for _, _, c in driven], dtype=np.intp)
         self._scale = np.array([c["scale"] for _, _, c in driven])
         self._offset = np.array([c["offset"] for _, _, c in driven])
+        self._low = np.array([_bound(c.get("low"), -np.inf) for _, _, c in driven])
+        self._high = np.array([_bound(c.get("high"), np.inf) for _, _, c in driven])
+        # torque motors: the PD gains that turn each column's joint target into torque
+        self.gains = [
+            (c["target"], c["kp"], c["kd"]) for _, _, c in driven if c.get("kp") is not None
+        ]
         observation = wiring.get("observation")
         self.has_observation = observation is not None
         if self.has_observation:
             self.features: list[dict[str, Any]] = observation["features"]
             self.source: dict[str, list[int]] = observation["source"]
+            self.signals: dict[str, list[str]] = observation.get("signals", {})
+            self._inputs = [name for name in self.source if name != "constants"]
             self._index = np.array(observation["index"], dtype=np.intp)
             self._buffer = np.zeros(self.source["constants"][1])
             self._buffer[self.source["constants"][0] :] = observation["constants"]
+            offset = observation.get("offset")
+            self._source_offset = None if offset is None else np.array(offset, dtype=np.float64)
 
-    def observe(self, qpos, qvel, task=None) -> np.ndarray:
-        """Every agent's observation `[n, obs_dim]` (float32) from the robot's joint positions
-        and velocities (MuJoCo's qpos and qvel order) and the task's features (if any)."""
+    def observe(self, *values, **signals) -> np.ndarray:
+        """Every agent's observation `[n, obs_dim]` (float32) from the robot's signals, by
+        name or in `describe()`'s order: `observe(qpos, qvel, task)` for a robot built from
+        its joint state (MuJoCo's qpos and qvel order, the task's features if any), or
+        `observe(joint_pos=..., joint_vel=..., gravity=..., ...)` for one built from its
+        hardware's signals (joint positions as the encoders read them: the start pose is
+        subtracted here). A missing or misshapen signal raises ValueError naming it."""
         if not self.has_observation:
             raise ValueError(
                 "this bundle's wiring has no observation layout (its env builds observations "
                 "itself, e.g. MaMuJoCo); build them as the env does"
             )
-        for name, values in (("qpos", qpos), ("qvel", qvel), ("task", task)):
+        if len(values) > len(self._inputs):
+            raise ValueError(f"observe takes at most {len(self._inputs)} signals: {self._inputs}")
+        given = dict(zip(self._inputs, values, strict=False))
+        twice = sorted(set(given) & set(signals))
+        unknown = sorted(set(signals) - set(self._inputs))
+        if twice or unknown:
+            raise ValueError(
+                f"signal(s) {twice or unknown} given {'twice' if twice else 'but unknown'}; "
+                f"this bundle observes {self._inputs}"
+            )
+        given |= signals
+        for name in self._inputs:
             start, stop = self.source[name]
-            values = np.zeros(0) if values is None else np.asarray(values, dtype=np.float64)
-            if values.shape != (stop - start,):
-                raise ValueError(
-                    f"{name} must have {stop - start} values, got shape {values.shape}"
-                )
-            self._buffer[start:stop] = values
-        return self._buffer[self._index].astype(np.float32)
+            value = given.get(name)
+            if value is None and not (name == "task" and stop == start):
+                raise ValueError(f"signal {name} is missing; this bundle observes {self._inputs}")
+            value = np.zeros(0) if value is None else np.asarray(value, dtype=np.float64)
+            if value.shape != (stop - start,):
+                raise ValueError(f"{name} must have {stop - start} values, got shape {value.shape}")
+            self._buffer[start:stop] = value
+        source = self._buffer if self._source_offset is None else self._buffer - self._source_offset
+        return source[self._index].astype(np.float32)
 
     def commands(self, actions) -> tuple[np.ndarray, np.ndarray]:
         """The MuJoCo ctrl indices and the values to write there for `actions` `[n, size]`:
-        `ctrl = offset + scale * clip(action, -1, 1)`, for every column that drives one."""
+        `ctrl = offset + scale * clip(action, -1, 1)`, clipped to each column's low / high,
+        for every column that drives one. For a torque motor the value is the joint's
+        target; `gains` gives the (joint, kp, kd) that the robot's PD loop turns into torque."""
         values = np.clip(np.asarray(actions)[self._action_rows, self._action_cols], -1.0, 1.0)
-        return self.ctrl_index, self._offset + self._scale * values
+        return self.ctrl_index, np.clip(self._offset + self._scale * values, self._low, self._high)
 
     def describe(self) -> str:
         lines = [f"control timestep {self.control_timestep:g} s; normaliser {self.normalizer}"]
         for agent in self.agents:
-            columns = ", ".join(
-                f"{c['actuator']} = {c['offset']:g} + {c['scale']:g} a"
-                if c.get("ctrl") is not None
-                else "(none)"
-                for c in agent["action"]
-            )
+            columns = ", ".join(_column(c) for c in agent["action"])
             joints = ", ".join(agent["joints"]) or "none"
             lines.append(f"  {agent['name']}: joints {joints}; actions: {columns}")
         if self.has_observation:
             layout = ", ".join(f"{f['name']} [{f['start']}:{f['stop']}]" for f in self.features)
-            sources = ", ".join(f"{k} [{a}:{b}]" for k, (a, b) in self.source.items())
             lines.append(f"observation (every agent): {layout}")
-            lines.append(f"  gathered from qpos | qvel | task | constants: {sources}")
+            sources = ", ".join(f"{k} [{a}:{b}]" for k, (a, b) in self.source.items())
+            lines.append(f"  gathered from the signals {sources}")
+            for name, labels in self.signals.items():
+                lines.append(f"  signal {name}: {', '.join(labels)}")
+            if self._source_offset is not None:
+                lines.append("  joint_pos: the encoders' angles; the start pose is subtracted")
         else:
             lines.append("observation: built by the env itself (no layout in the bundle)")
         return "\n".join(lines)
+
+
+def _bound(value, default: float) -> float:
+    return default if value is None else float(value)
+
+
+def _column(column: dict[str, Any]) -> str:
+    if column.get("ctrl") is None:
+        return "(none)"
+    if column.get("kp") is not None:
+        return (
+            f"{column['actuator']}: target {column['target']} = {column['offset']:g} + "
+            f"{column['scale']:g} a, torque = {column['kp']:g} (target - q) - {column['kd']:g} dq"
+        )
+    text = f"{column['actuator']} = {column['offset']:g} + {column['scale']:g} a"
+    if column.get("low") is not None or column.get("high") is not None:
+        text += f" in [{column.get('low')}, {column.get('high')}]"
+    return text

@@ -199,7 +199,7 @@ class ArrayTeam:
     env_id: str
     action_type: str
     action_size: int  # continuous: action_width; discrete: the number of choices
-    control_timestep: float  # simulated seconds per env step (robots; MaMuJoCo)
+    control_timestep: float = 1.0  # simulated seconds per env step (games: 1 step)
     # Teams whose agents may leave mid-episode or have unavailable choices set `masks` and
     # keep `active [n]` and `available [n, action_size]` up to date (PettingZoo envs).
     masks: bool = False
@@ -239,6 +239,11 @@ class ArrayTeam:
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         """`step` for actions already checked: a float64 `[n_agents, action_width]` array."""
         raise NotImplementedError
+
+    def travelled(self) -> float:
+        """How far a robot with a floating base moved forward in this episode (m, along its
+        start heading); NaN for other envs."""
+        return math.nan
 
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
         """An RGB frame `[height, width, 3]`; the physics envs override this."""

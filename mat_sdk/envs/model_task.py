@@ -139,6 +139,8 @@ class ModelTask(base.Task):
         self._turn_free_joints(model, data)
         self.action[:] = 0.0
         self.previous_action[:] = 0.0
+        if self._step is not None:
+            self._step.memory.clear()
         if self.recipe.commands is not None:
             command = self.recipe.commands.sample(self.random)
             self.command[:] = command if self.fixed_command is None else self.fixed_command
@@ -177,13 +179,20 @@ class ModelTask(base.Task):
         self.fixed_command = self.recipe.commands.check(command)
         self.command[:] = self.fixed_command
 
-    def get_state(self) -> dict[str, np.ndarray]:
+    def get_state(self) -> dict[str, Any]:
+        memory = {} if self._step is None else self._step.memory
         return {"command": self.command.copy(), "action": self.action.copy(),
-                "previous_action": self.previous_action.copy()}  # fmt: skip
+                "previous_action": self.previous_action.copy(),
+                "memory": {key: value.copy() for key, value in memory.items()}}  # fmt: skip
 
-    def set_state(self, state: dict[str, np.ndarray]) -> None:
+    def set_state(self, state: dict[str, Any]) -> None:
         for name in ("command", "action", "previous_action"):
             getattr(self, name)[:] = state[name]
+        if self._step is not None:
+            self._step.memory.clear()
+            self._step.memory.update(
+                {key: np.array(value, dtype=np.float64) for key, value in state["memory"].items()}
+            )
 
     # ---------------------------------------------------------------- dm_control's Task
     def get_observation(self, physics) -> dict:

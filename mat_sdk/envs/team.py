@@ -19,6 +19,7 @@ the command and the previous action. `wiring()` describes the signals for a cont
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
@@ -45,6 +46,7 @@ from mat_sdk.envs.decomposition import (
     root_joints,
 )
 from mat_sdk.envs.features import Signal, robot_signals
+from mat_sdk.envs.trunk import Trunk
 
 if TYPE_CHECKING:
     from mat_sdk.envs.sources import RobotSpec
@@ -113,6 +115,11 @@ class RobotTeam(ArrayTeam):
         self._build_action_map(zeroed)
         self._build_observation_map()
         self._steps = 0
+        try:  # a floating base, whose forward travel `travelled` measures
+            self._base = Trunk(self._model)
+        except ValueError:
+            self._base = None
+        self._start = self._base_position()
 
     # ---------------------------------------------------------------- set-up
     def joint_names(self, agent: int) -> list[str]:
@@ -415,7 +422,22 @@ class RobotTeam(ArrayTeam):
         with self.physics.reset_context():
             self._task.initialize_episode(self.physics)
         self._steps = 0
+        self._start = self._base_position()
         return self.observe()
+
+    def _base_position(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A floating base's horizontal position and heading (unit vector), else None."""
+        if self._base is None:
+            return None
+        heading = self._data.xmat[self._base.body].reshape(3, 3)[:2, 0]
+        position = self._data.qpos[self._base.qpos : self._base.qpos + 2].copy()
+        return position, heading / max(float(np.linalg.norm(heading)), 1e-9)
+
+    def travelled(self) -> float:
+        if self._start is None:
+            return math.nan
+        position, heading = self._start
+        return float((self._data.qpos[self._base.qpos : self._base.qpos + 2] - position) @ heading)
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
@@ -476,6 +498,7 @@ class RobotTeam(ArrayTeam):
             "random": self._task._random.get_state(),
             "steps": self._steps,
             **({"task": self._task.get_state()} if hasattr(self._task, "get_state") else {}),
+            **({"start": list(self._start)} if self._start is not None else {}),
         }
 
     def set_state(self, state: dict) -> None:
@@ -485,6 +508,8 @@ class RobotTeam(ArrayTeam):
         self._steps = int(state["steps"])
         if "task" in state:
             self._task.set_state(state["task"])
+        if "start" in state:
+            self._start = tuple(np.asarray(v, dtype=np.float64) for v in state["start"])
         mujoco.mj_forward(self._model, self._data)
 
     def state(self) -> np.ndarray:
@@ -493,8 +518,24 @@ class RobotTeam(ArrayTeam):
         return source[self._state_index].astype(np.float32)
 
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
-        """An RGB frame `[height, width, 3]`; needs a GL backend (set MUJOCO_GL=egl or osmesa)."""
+        """An RGB frame `[height, width, 3]`; needs a GL backend (set MUJOCO_GL=egl or osmesa).
+        A model without cameras is filmed by a free camera that follows the robot."""
         try:
+            if self._model.ncam == 0:
+                return self._follow(height, width)
             return self.physics.render(height=height, width=width, camera_id=camera_id)
         except Exception as error:
             raise render_failed(error) from error
+
+    def _follow(self, height: int, width: int) -> np.ndarray:
+        """A frame from a camera that tracks the robot's root body from the side and above."""
+        renderer = getattr(self, "_renderer", None)
+        if renderer is None or (renderer.height, renderer.width) != (height, width):
+            renderer = self._renderer = mujoco.Renderer(self._model, height, width)
+        camera = mujoco.MjvCamera()
+        camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+        camera.trackbodyid = self._base.body if self._base is not None else 1
+        camera.distance = 1.5 * float(self._model.stat.extent)
+        camera.azimuth, camera.elevation = 135.0, -20.0
+        renderer.update_scene(self._data, camera)
+        return renderer.render()

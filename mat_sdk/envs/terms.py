@@ -38,6 +38,8 @@ class Step:
     action: np.ndarray  # this step's action of every actuator, in [-1, 1] (undriven: 0)
     previous_action: np.ndarray
     control_timestep: float
+    # what stateful terms remember within an episode (cleared at its start, checkpointed)
+    memory: dict[str, np.ndarray] = field(default_factory=dict)
     _cache: dict = field(default_factory=dict)
 
     def cached(self, key, make):
@@ -136,6 +138,28 @@ class TrackYawRate(Term):
     def value(self, step: Step) -> float:
         error = step.trunk.angular_velocity(step.data)[2] - step.command[2]
         return float(np.exp(-(error**2) / self.sigma))
+
+
+@dataclass(frozen=True)
+class FeetAirTime(Term):
+    """Steps of a useful length: when a foot lands, its time in the air minus `threshold`
+    seconds (legged_gym's term; short shuffles cost, strides pay). Only while the command
+    asks to move."""
+
+    feet: tuple[str, ...] = ()
+    threshold: float = 0.5
+
+    def value(self, step: Step) -> float:
+        contacts = step.cached(("contacts", self.feet), lambda m: Contacts(m, self.feet))
+        touching = contacts.read(step.data) > 0
+        key = f"air_time.{'.'.join(self.feet)}"
+        air = step.memory.setdefault(key, np.zeros(len(self.feet)))
+        landed = (air > 0) & touching
+        air += step.control_timestep
+        reward = float(((air - self.threshold) * landed).sum())
+        air[touching] = 0.0
+        moving = step.command.size == 0 or float(np.linalg.norm(step.command[:2])) > 0.1
+        return reward if moving else 0.0
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "truncated": ((), np.bool_),
     "episode_return": ((), np.float64),
     "episode_length": ((), np.int64),
+    "episode_travel": ((), np.float64),  # a floating base's forward distance (else NaN)
     # teams with masks (`ArrayTeam.masks`): who is in the episode, and what each may choose
     "active": (("n",), np.float32),
     "left": (("n",), np.bool_),
@@ -89,6 +90,7 @@ class _EnvSlice:
             if terminated or truncated:
                 b.final_obs[i] = obs
                 b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
+                b.episode_travel[i] = team.travelled()
                 self._returns[k], self._lengths[k] = 0.0, 0
                 obs = team.reset()
                 b.active[i] = 1.0  # a new episode: nobody has left it
@@ -138,6 +140,7 @@ _TEAM_ATTRIBUTES = (
     "state_dim",
     "episode_limit",
     "masks",
+    "control_timestep",
 )
 
 
@@ -226,6 +229,7 @@ class VecTeam:
             "final_obs": b.final_obs.copy(),
             "episode_return": b.episode_return.copy(),
             "episode_length": b.episode_length.copy(),
+            "episode_travel": b.episode_travel.copy(),
             "done": done,
         }
         if self.masks:

@@ -1,0 +1,135 @@
+"""The Go2's controller: the bundle acts from what the robot's hardware gives, nothing more.
+
+    PYTHONPATH=examples mat train go2:walk ... --out runs/go2          # docs/REAL_ROBOTS.md
+    mat export runs/go2/checkpoint.pt -o runs/go2/onnx --trust-env-code
+    python examples/go2_controller.py runs/go2/onnx --command 0.7 0 0 --seconds 20
+
+Every tick (50 Hz) it reads the joint encoders (angle and velocity of the 12 joints, by
+name), the IMU (orientation and angular velocity) and the four foot contact switches; the
+bundle's wiring turns these, the operator's velocity command and the previous action into
+every leg's observation; the policy acts; the wiring turns the actions into joint targets
+for the motors. Only `mat_runtime` (numpy + onnxruntime) runs the policy: torch is blocked,
+and nothing of the training SDK is imported.
+
+The "robot" here is MuJoCo stepping the model (`SimulatedGo2`), so the loop can be run and
+measured anywhere; on the real Go2, `read` gets the same numbers from its low-level state
+message (motor q, dq; IMU quaternion, gyroscope; foot force > threshold) and `write` sends
+the targets with the motors' own position gains.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+if __name__ == "__main__":  # prove the point: importing torch now raises ImportError
+    sys.modules["torch"] = None
+
+import mujoco
+import numpy as np
+
+from mat_runtime import Policy, loop
+
+MODEL = Path(__file__).parent / "robots" / "unitree_go2" / "scene_mjx.xml"
+
+
+class SimulatedGo2:
+    """The hardware's side, simulated: sensors to read, joint targets to write."""
+
+    def __init__(self, model_path: Path, joints: list[str], feet: list[str], control: float):
+        self.model = mujoco.MjModel.from_xml_path(str(model_path))
+        self.data = mujoco.MjData(self.model)
+        self.substeps = round(control / self.model.opt.timestep)
+        ids = [self.model.joint(name).id for name in joints]
+        self.qpos = np.array([self.model.jnt_qposadr[j] for j in ids])
+        self.qvel = np.array([self.model.jnt_dofadr[j] for j in ids])
+        self.feet = np.array([self.model.geom(name).id for name in feet])
+        self.imu = self.model.site("imu").id
+        self.base = self.model.body("base").id
+        self.reset()
+
+    def reset(self) -> None:
+        mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("home").id)
+        mujoco.mj_forward(self.model, self.data)
+        self.start = self.data.xpos[self.base].copy()
+
+    def read(self) -> dict[str, np.ndarray]:
+        """What the robot measures: encoders, IMU (as gravity's direction and the gyro, in the
+        IMU's frame) and foot contacts."""
+        data = self.data
+        frame = data.site_xmat[self.imu].reshape(3, 3)
+        base = data.xmat[self.base].reshape(3, 3)
+        spin = base @ data.qvel[3:6]  # the free joint's angular velocity, in the world
+        touching = np.isin(self.feet, np.concatenate([data.contact.geom1, data.contact.geom2]))
+        return {
+            "joint_pos": data.qpos[self.qpos].copy(),
+            "joint_vel": data.qvel[self.qvel].copy(),
+            "gravity": frame.T @ np.array([0.0, 0.0, -1.0]),
+            "gyro": frame.T @ spin,
+            "contacts": touching.astype(np.float64),
+        }
+
+    def write(self, actuators: np.ndarray, targets: np.ndarray) -> None:
+        """Send joint targets to the motors; the simulation then runs one control period."""
+        self.data.ctrl[actuators] = targets
+        mujoco.mj_step(self.model, self.data, self.substeps)
+
+    def fallen(self) -> bool:
+        up = self.data.xmat[self.base].reshape(3, 3)[2, 2]
+        return bool(up < np.cos(np.radians(60)) or self.data.qpos[2] < 0.12)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("bundle", help="a Go2 bundle (`mat export` of a go2:walk checkpoint)")
+    parser.add_argument(
+        "--command", type=float, nargs=3, default=[0.7, 0.0, 0.0],
+        metavar=("VX", "VY", "YAW_RATE"), help="velocity command (m/s, rad/s)",
+    )  # fmt: skip
+    parser.add_argument("--seconds", type=float, default=20.0, help="how long to walk")
+    parser.add_argument("--model", type=Path, default=MODEL, help="the MJCF the robot runs")
+    parser.add_argument("--cpu", type=int, help="pin the process to this core")
+    args = parser.parse_args()
+
+    for note in loop.realtime(args.cpu, None):
+        print(note)
+    policy = Policy.load(args.bundle, threads=1)
+    wiring = policy.wiring
+    if wiring is None or "joint_pos" not in wiring.source:
+        parser.error(f"{args.bundle} does not observe hardware signals (a go2:walk bundle does)")
+    robot = SimulatedGo2(
+        args.model, wiring.signals["joint_pos"], wiring.signals["contacts"], wiring.control_timestep
+    )
+    n = len(wiring.agents)
+    command = np.array(args.command)
+    actions = np.zeros((n, policy.action_size), np.float32)
+    last_action = np.zeros(n * policy.action_size)  # each leg's previous action, in leg order
+    state = {"falls": 0}
+
+    def act() -> None:
+        obs = wiring.observe(**robot.read(), command=command, last_action=last_action)
+        policy.act(obs, out=actions)
+
+    def step() -> None:
+        index, targets = wiring.commands(actions)
+        last_action[:] = np.clip(actions, -1, 1).reshape(-1)
+        robot.write(index, targets)
+        if robot.fallen():
+            state["falls"] += 1
+            robot.reset()
+            last_action[:] = 0.0
+
+    ticks = loop.run(act, step, 1 / wiring.control_timestep, args.seconds, warmup=0.0)
+    travelled = float((robot.data.xpos[robot.base] - robot.start)[0])
+    speed = travelled / max(robot.data.time, 1e-9)
+    print(f"{policy}\n{ticks.summary()}")
+    print(
+        f"command {args.command}: falls {state['falls']}; {travelled:.2f} m forward in the last "
+        f"{robot.data.time:.1f} s ({speed:.2f} m/s)"
+    )
+    assert "torch" not in {m for m, module in sys.modules.items() if module}
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,231 @@
+"""A real robot start to finish, on the trimmed Menagerie Go2 (examples/robots/unitree_go2):
+its start pose, observations from hardware signals, joint targets, task terms, training, and
+a controller that acts from the robot's sensors through the bundle's wiring."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import TINY
+
+from mat_sdk import envs
+from mat_sdk.bench.seeds import with_examples
+from mat_sdk.envs import terms
+from mat_sdk.trainer import Trainer
+
+with_examples()
+import go2  # noqa: E402  (examples/, put on the path just above)
+import go2_controller  # noqa: E402
+
+MJX = (go2.MODELS / "go2_mjx.xml").read_text()  # no floor: it is in scene_mjx.xml
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _team(**options):
+    return envs.make_team("go2:walk", **options)
+
+
+def test_episodes_start_from_home_with_noise_inside_every_joints_range():
+    team = _team(seed=0)
+    model = team.physics.model.ptr
+    home = model.key_qpos[model.key("home").id]
+    hinges = [j for j in range(model.njnt) if model.jnt_type[j] == 3]
+    starts = []
+    for episode in range(40):
+        team.reset(seed=episode)
+        qpos = team.physics.data.qpos.copy()
+        starts.append(qpos)
+        assert abs(np.linalg.norm(qpos[3:7]) - 1.0) < 1e-12  # a unit quaternion, turned
+        for j in hinges:
+            low, high = model.jnt_range[j]
+            assert low <= qpos[model.jnt_qposadr[j]] <= high
+    starts = np.array(starts)
+    assert np.allclose(starts[:, :3], home[:3])  # no position noise unless asked
+    assert 0 < np.abs(starts[:, 7:] - home[7:]).max() <= 0.1 + 1e-12  # joint noise, scaled
+    assert np.abs(starts[:, 3:7] - home[3:7]).max() > 1e-3  # root_noise turns the base
+
+
+def test_a_start_outside_a_joints_range_and_an_unknown_keyframe_are_refused():
+    no_home = re.sub(r"<keyframe>.*</keyframe>", "", MJX, flags=re.S)
+    with pytest.raises(ValueError, match=r"puts joint 'FL_calf_joint' at 0, outside its range"):
+        envs.from_mjcf(no_home, go2.LAYOUT, go2.REWARD)
+    with pytest.raises(ValueError, match="no keyframe named 'crouch'; its keyframes: home"):
+        envs.from_mjcf(MJX, go2.LAYOUT, go2.REWARD, keyframe="crouch")
+
+
+def test_observations_come_from_the_hardwares_signals_only():
+    team = _team(seed=0, command=[0.7, 0.0, 0.0])
+    names = [feature["name"] for feature in team.wiring()["observation"]["features"]]
+    assert names == [
+        "joints.pos", "joints.vel", "gravity", "gyro", "contacts", "command", "last_action", "id",
+    ]  # fmt: skip
+    obs = team.reset(seed=0)
+    columns = {
+        f["name"]: slice(f["start"], f["stop"]) for f in team.wiring()["observation"]["features"]
+    }
+    np.testing.assert_allclose(obs[:, columns["command"]], [[0.7, 0.0, 0.0]] * 4, atol=1e-7)
+    assert np.allclose(obs[:, columns["gravity"]][:, 2], -1.0, atol=0.01)  # standing level
+    start = team._task.start_qpos
+    own = team.physics.data.qpos[7:10] - start[7:10]  # FL's joints, relative to home
+    np.testing.assert_allclose(obs[0, columns["joints.pos"]], own, atol=1e-6)
+    actions = np.random.default_rng(0).uniform(-1, 1, (4, 3))
+    obs, *_ = team.step(actions)
+    np.testing.assert_allclose(obs[:, columns["last_action"]], actions, atol=1e-6)
+
+
+def test_privileged_signals_are_a_choice():
+    spec = envs.from_mjcf(
+        go2.MODELS / "scene_mjx.xml", go2.LAYOUT, go2.REWARD,
+        observation=envs.Observation(imu="imu", privileged=("height",)), substeps=10,
+    )  # fmt: skip
+    team = spec.build(seed=0)
+    obs = team.reset(seed=0)
+    feature = next(f for f in team.wiring()["observation"]["features"] if f["name"] == "height")
+    assert obs[0, feature["start"]] == pytest.approx(team.physics.data.qpos[2], abs=1e-6)
+    with pytest.raises(ValueError, match="privileged signals are"):
+        envs.Observation(privileged=("mass",))
+
+
+def test_actions_are_joint_targets_around_the_start_pose_clipped_to_the_control_range():
+    team = _team(seed=0)
+    team.reset(seed=0)
+    actions = np.array([[1.0, -1.0, 0.5]] * 4)
+    team.step(actions)
+    model, ctrl = team.physics.model.ptr, team.physics.data.ctrl
+    home = model.key_ctrl[model.key("home").id]
+    expected = np.clip(home + 0.5 * actions.reshape(-1), *model.actuator_ctrlrange.T)
+    np.testing.assert_allclose(ctrl, expected)
+    column = team.wiring()["agents"][0]["action"][2]
+    assert (column["offset"], column["scale"], column["target"]) == (-1.8, 0.5, "FL_calf_joint")
+
+
+def test_a_pd_layer_turns_targets_into_torques_on_the_torque_motor_model():
+    """Menagerie's go2.xml has torque motors: at zero action the PD layer holds the home
+    pose, where raw torques (the control range's middle, 0 N m) would let it collapse."""
+    team = envs.make_team("go2:walk_torque", seed=0)
+    team.reset(seed=0)
+    for _ in range(50):
+        team.step(np.zeros((4, 3)))
+    assert team.physics.data.qpos[2] > 0.2
+    forces = team.physics.data.actuator_force
+    assert np.all(np.abs(forces) <= team.physics.model.ptr.actuator_ctrlrange[:, 1] + 1e-9)
+    column = team.wiring()["agents"][0]["action"][0]
+    assert (column["kp"], column["kd"], column["target"]) == (50.0, 0.5, "FL_hip_joint")
+    with pytest.raises(ValueError, match="torque motors: JointTargets needs kp and kd"):
+        envs.from_mjcf(go2.MODELS / "scene.xml", go2.LAYOUT, go2.REWARD,
+                       actions=envs.JointTargets(0.5))  # fmt: skip
+
+
+def test_terms_measure_what_they_name():
+    team = _team(seed=0, command=[0.0, 0.0, 0.0])
+    team.reset(seed=0)
+    step = team._task._step
+    data = team.physics.data.ptr
+    assert terms.Upright().value(step) == pytest.approx(0.0, abs=3e-3)  # root_noise: a tilt
+    assert terms.TrackVelocity().value(step) == pytest.approx(1.0, abs=1e-3)  # still = command
+    assert not terms.Tilt(60).ends(step) and not terms.IllegalContact(("base",)).ends(step)
+    data.qpos[3:7] = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0, 0]  # on its side
+    data.qpos[2] = 0.05
+    team.physics.forward()
+    assert terms.Tilt(60).ends(step) and terms.Upright().value(step) == pytest.approx(-1.0)
+    assert terms.IllegalContact(("base",)).ends(step)
+    with pytest.raises(ValueError, match="must be finite with low <= high"):
+        terms.VelocityCommand(vx=(1.0, 0.0))
+
+
+def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):
+    options = {**TINY, "num_envs": 2, "rollout_length": 20}
+    with Trainer("go2:walk", out_dir=tmp_path / "a", **options) as trainer:
+        trainer.learn(40, progress_bar=False)
+        trainer.save(tmp_path / "half.pt")
+        trainer.learn(80, progress_bar=False)
+        straight = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
+    with Trainer.load(tmp_path / "half.pt", out_dir=tmp_path / "b", trust_env_code=True) as again:
+        again.learn(80, progress_bar=False)
+        for name, value in again.policy.state_dict().items():
+            assert np.array_equal(value.numpy(), straight[name].numpy()), name
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    from mat_export import export
+
+    root = tmp_path_factory.mktemp("go2")
+    with Trainer("go2:walk", **{**TINY, "rollout_length": 20}) as trainer:
+        trainer.learn(40, progress_bar=False)
+        ckpt = trainer.save(root / "go2.pt")
+    export(ckpt, root / "onnx", agent_counts=(1, 4), trust_env_code=True)
+    return root / "onnx"
+
+
+def test_the_controller_builds_the_envs_observation_from_the_robots_sensors(bundle):
+    """The same state through two doors: the env's own observation, and the wiring fed with
+    what the hardware reads (encoders, IMU, contacts), the command and the last action."""
+    from mat_runtime import Policy
+
+    policy = Policy.load(bundle)
+    wiring = policy.wiring
+    team = _team(seed=0, command=[0.5, 0.0, 0.2])
+    robot = go2_controller.SimulatedGo2(
+        go2.MODELS / "scene_mjx.xml", wiring.signals["joint_pos"], wiring.signals["contacts"],
+        wiring.control_timestep,
+    )  # fmt: skip
+    robot.model, robot.data = team.physics.model.ptr, team.physics.data.ptr  # the env's state
+    obs, last = team.reset(seed=0), np.zeros(12)
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        built = wiring.observe(**robot.read(), command=[0.5, 0.0, 0.2], last_action=last)
+        np.testing.assert_allclose(built, obs, rtol=1e-5, atol=1e-5)
+        actions = rng.uniform(-1, 1, (4, 3))
+        obs, *_ = team.step(actions)
+        last = actions.reshape(-1)
+        index, targets = wiring.commands(actions)
+        np.testing.assert_allclose(team.physics.data.ctrl[index], targets, atol=1e-12)
+    described = policy.describe()
+    for signal in ("joint_pos", "joint_vel", "gravity", "gyro", "contacts", "command"):
+        assert f"signal {signal}:" in described
+    with pytest.raises(ValueError, match="signal gravity is missing"):
+        wiring.observe(joint_pos=np.zeros(12), joint_vel=np.zeros(12))
+
+
+def test_the_go2_controller_runs_without_torch(bundle):
+    run = subprocess.run(
+        [sys.executable, str(REPO / "examples" / "go2_controller.py"), str(bundle),
+         "--seconds", "1"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "falls" in run.stdout and re.search(r"late ticks: \d+", run.stdout)
+
+
+def test_a_model_without_a_camera_is_filmed_by_a_following_camera():
+    team = _team(seed=0)
+    team.reset(seed=0)
+    try:
+        frame = team.render(height=60, width=80)
+    except RuntimeError as error:
+        pytest.skip(f"no GL here: {error}")
+    assert frame.shape == (60, 80, 3) and frame.std() > 5
+
+
+def test_actuators_left_to_no_agent_are_named():
+    with pytest.warns(envs.sources.UnusedActuators, match=r"leaves actuators \['RR_hip'"):
+        layout = {**go2.LAYOUT, "RR": ["RR_thigh", "RR_calf"]}
+        envs.from_mjcf(go2.MODELS / "scene_mjx.xml", layout, go2.REWARD, substeps=10)
+
+
+def test_mat_train_says_when_it_trains_more_steps_than_asked(tmp_path):
+    run = subprocess.run(
+        [str(Path(sys.executable).with_name("mat")), "train", "coordination-2", "--steps", "10",
+         "--num-envs", "4", "--set", "rollout_length=4", "--set", "num_minibatches=1",
+         "--out", str(tmp_path / "r"), "--quiet"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "--steps 10: training runs whole updates of 16 env steps" in run.stdout
+    assert "this run ends at 16 steps" in run.stdout
