@@ -34,6 +34,7 @@ REWARD = [
     terms.ActionRate(0.01),  # smooth targets
     terms.Torque(2e-4),  # effort
     terms.JointLimits(1.0),  # off the mechanical stops
+    terms.FeetAirTime(1.0, FEET),  # strides, not shuffles: what makes a gait emerge early
 ]
 TERMINATE = [terms.Tilt(60.0), terms.IllegalContact(("base",))]
 WALK = terms.VelocityCommand(vx=(0.3, 1.0))  # forward at 0.3-1 m/s, straight
