@@ -80,26 +80,33 @@ def training_payload(trainer) -> dict[str, Any]:
     }
 
 
-# What `Trainer.load` may change: how the run is computed, not what is trained.
+# What a resume may change: how the run is computed, not what is trained.
 RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 
 
 def training_options(
-    payload: dict[str, Any], path: str | os.PathLike, overrides: dict[str, Any]
-) -> dict[str, Any]:
-    """The `TrainConfig` fields of the run a checkpoint holds, with `overrides` of how to run
-    it (`RESUME_OVERRIDES`); anything else is refused, since the task, model and
-    hyperparameters are the checkpoint's."""
-    unknown = set(overrides) - set(RESUME_OVERRIDES)
-    if unknown:
-        raise ValueError(
-            f"Trainer.load can override only {sorted(RESUME_OVERRIDES)}; the task, model and "
-            "hyperparameters come from the checkpoint"
-        )
-    train = {**payload["config"]["train"], **overrides}
+    payload: dict[str, Any], path: str | os.PathLike, given: dict[str, Any]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The `TrainConfig` fields of the run a checkpoint holds, and what of `given` changes
+    them: how to run it (`RESUME_OVERRIDES`); any other field given must be the checkpoint's
+    own, since the task, model and hyperparameters are the run's. The one resume rule, for
+    `Trainer.load` and `mat train --resume` alike. -> (fields, the overrides applied)."""
+    train = dict(payload["config"]["train"])
     if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
         raise CheckpointError(f"{path}: config.train names no env and algo")
-    return train
+    changed = {}
+    for field, value in given.items():
+        if field in RESUME_OVERRIDES:
+            if value != train.get(field):
+                changed[field] = value
+        elif field not in train:
+            raise ValueError(f"{field} is not a training option")
+        elif value != train[field]:
+            raise ValueError(
+                f"{path} continues its run as it was trained, with {field}={train[field]!r}; got "
+                f"{field}={value!r}. Drop that option, or start a new run in another directory"
+            )
+    return {**train, **changed}, changed
 
 
 def restore_pretrained(

@@ -70,8 +70,10 @@ def finetune(
     """
     out = Path(out_dir) if out_dir is not None else None
     with files.RunLock(out) if out else contextlib.nullcontext():
-        if resume:
-            trainer, zero_shot = _resumed(out, env, trust_env_code, options)
+        if resume:  # as it was started: what is given again must be what it was
+            given = {**options, **({"faults": faults} if faults else {}), "lr": lr}
+            given = {k: v for k, v in given.items() if v is not None}
+            trainer, zero_shot = _resumed(out, env, trust_env_code, given)
         else:
             trainer = _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code,
                                options)  # fmt: skip
@@ -83,6 +85,12 @@ def finetune(
         if out:
             _write_summary(out / SUMMARY_NAME, trainer, checkpoint, zero_shot, final)
     return FinetuneResult(trainer, zero_shot, final)
+
+
+def default_out(env: str | None, faults: dict[str, str] | None) -> Path:
+    """runs/finetune-<the change>: its faults, else the env."""
+    label = "-".join(f"{k}_{v}" for k, v in (faults or {}).items()) or (env or "same")
+    return Path("runs") / f"finetune-{label.replace(':', '_')}"
 
 
 def _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code, options) -> Trainer:

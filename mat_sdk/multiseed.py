@@ -1,18 +1,20 @@
 """`mat train ENV --seeds S`: S independent runs, one process each, sized to the cores.
 
-Seed K is exactly `mat train ENV --seed K --out RUN/seed_K` (the same command, run as a child
-process), so every tool takes RUN/seed_K unchanged and a seed of a set equals a solo run.
-On CPU a seed's update is compute-bound, so separate processes are the fast way to run many
-(BENCHMARKS.md). A failed seed is reported with its log; the others carry on, and running the
-same command again resumes what did not finish and skips what did. With `--ray` each seed is
-a Ray task instead (`ray_launcher`), retried from its checkpoint when its run or worker is
-killed.
+Seed K is `runs.train` of the set's request with seed K into RUN/seed_K, run in a child
+process (the same call `mat train --seed K --out RUN/seed_K` makes), so every tool takes
+RUN/seed_K unchanged and a seed of a set equals a solo run. The update settings are tuned
+once, by the set, and given to every seed. On CPU a seed's update is compute-bound, so
+separate processes are the fast way to run many (BENCHMARKS.md). A failed seed is reported
+with its log; the others carry on, and running the same command again resumes what did not
+finish and skips what did. With `--ray` each seed is a Ray task instead (`ray_launcher`),
+retried from its checkpoint when its run or worker is killed.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import functools
 import os
 import re
@@ -23,6 +25,10 @@ import time
 from pathlib import Path
 
 from tqdm import tqdm
+
+from mat_sdk import files
+from mat_sdk.processes import usable_cores
+from mat_sdk.runs import RunRequest
 
 DONE_NAME = "finished"  # written in a seed's directory when its run ended well
 LOG_NAME = "train.log"
@@ -58,14 +64,63 @@ def _steps_done(run: Path) -> int:
         return 0  # seed's own run sets a foreign file aside
 
 
-def seed_command(train_args: list[str], seed: int, run: Path) -> list[str]:
-    """Seed K's child: `mat train *train_args --seed K --out run`, resumed when `run` holds
-    a checkpoint, started through `_die_with_parent` (below)."""
-    command = [*train_args, "--seed", str(seed), "--out", str(run), "--quiet"]
-    if (run / "checkpoint.pt").exists():
-        command.append("--resume")
+SET_NAME = "seed_set.json"  # the set's request, which every seed's child reads
+
+
+def seed_command(request_path: Path, seed: int) -> list[str]:
+    """Seed K's child: the set's request as seed K, started through `_die_with_parent`."""
     parent = ["--parent", str(os.getpid())]
-    return [*python("mat_sdk.multiseed:seed_main"), *parent, "train", *command]
+    return [*python("mat_sdk.multiseed:seed_main"), *parent, str(request_path), str(seed)]
+
+
+def default_out(env_id: str, algo: str) -> Path:
+    """A seed set's directory by default: runs/ENV-ALGO (its seeds in seed_K)."""
+    return Path("runs") / f"{env_id.replace(':', '_')}-{algo}"
+
+
+def seed_request(request: RunRequest, seed: int) -> RunRequest:
+    """The set's request as seed K's own run: seed K in OUT/seed_K, resumed when it holds a
+    checkpoint."""
+    run = Path(request.out) / f"seed_{seed}"
+    return dataclasses.replace(
+        request, out=run, options={**request.options, "seed": seed},
+        resume=(run / "checkpoint.pt").exists(), tune=False, free_cores=0,
+    )  # fmt: skip
+
+
+def train_seeds(
+    request: RunRequest,
+    seeds: list[int],
+    ray_address: str | None = None,
+    quiet: bool = False,
+    say=print,
+) -> list[int]:
+    """Run `request` once per seed into OUT/seed_K (see the module docstring); the update
+    settings tuned once here. -> the seeds that failed (the others finished)."""
+    from mat_sdk.runs import tuned
+
+    out = Path(request.out)
+    cores = usable_cores()
+    workers = request.options.get("workers", 0)
+    # tuned so that no seed waits for a core: each keeps its share of them
+    share = cores // min(len(seeds), cores)
+    settings = tuned(dataclasses.replace(request, free_cores=share - 1 - workers), say)
+    request = dataclasses.replace(
+        request, options={**request.options, **settings},
+        given=sorted({*request.given, *settings}),
+    )  # fmt: skip
+    per_seed = 1 + workers + request.options.get("update_workers", 0)
+    with files.RunLock(out):  # one seed set at a time in OUT
+        files.write_text_atomic(out / SET_NAME, request.to_json())
+        if ray_address is None:
+            processes = max(1, min(len(seeds), cores // per_seed))
+            say(f"{len(seeds)} seeds into {out}/seed_K, {processes} at a time")
+            launch = _LocalSeed
+        else:  # every seed a Ray task of per_seed CPUs, queued by Ray; OUT on shared storage
+            processes = len(seeds)
+            launch = ray_launcher(ray_address, per_seed)
+            say(f"{len(seeds)} seeds into {out}/seed_K as Ray tasks of {per_seed} CPU(s)")
+        return run_seeds(out / SET_NAME, seeds, out, request.steps, processes, quiet, launch)
 
 
 def python(entry: str) -> list[str]:
@@ -83,9 +138,9 @@ def python(entry: str) -> list[str]:
 class _LocalSeed:
     """One seed as a child process of this one."""
 
-    def __init__(self, train_args: list[str], seed: int, run: Path):
+    def __init__(self, request_path: Path, seed: int, run: Path):
         self.log = (run / LOG_NAME).open("a")
-        command = seed_command(train_args, seed, run)
+        command = seed_command(request_path, seed)
         self.process = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
 
     def poll(self) -> tuple[int, str] | None:
@@ -106,13 +161,13 @@ class SeedInterrupted(RuntimeError):
     """A seed's child was killed by a signal: Ray retries the task, which resumes it."""
 
 
-def _ray_seed(train_args: list[str], seed: int, run: str) -> int:
+def _ray_seed(request_path: str, seed: int, run: str) -> int:
     """One seed as a Ray task: its child runs on the task's node, into `run` (a path every
     node sees, e.g. on shared storage), resuming from the checkpoint a killed try left."""
     run_dir = Path(run)
     run_dir.mkdir(parents=True, exist_ok=True)
     with (run_dir / LOG_NAME).open("a") as log:
-        command = seed_command(train_args, seed, run_dir)
+        command = seed_command(Path(request_path), seed)
         code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
     if code < 0:
         raise SeedInterrupted(f"seed {seed}'s run was killed by signal {-code}")
@@ -122,10 +177,10 @@ def _ray_seed(train_args: list[str], seed: int, run: str) -> int:
 class _RaySeed:
     """One seed as a Ray task; a killed try (its child or its worker) is retried."""
 
-    def __init__(self, task, train_args: list[str], seed: int, run: Path):
+    def __init__(self, task, request_path: Path, seed: int, run: Path):
         import ray
 
-        self.ray, self.ref = ray, task.remote(train_args, seed, str(run.resolve()))
+        self.ray, self.ref = ray, task.remote(str(request_path.resolve()), seed, str(run.resolve()))
 
     def poll(self) -> tuple[int, str] | None:
         ready, _ = self.ray.wait([self.ref], timeout=0)
@@ -159,7 +214,7 @@ def ray_launcher(address: str, cpus_per_seed: int):
 
 
 def run_seeds(
-    train_args: list[str],
+    request_path: Path,
     seeds: list[int],
     out: Path,
     steps: int,
@@ -167,9 +222,9 @@ def run_seeds(
     quiet: bool,
     launch=_LocalSeed,
 ) -> list[int]:
-    """Run `mat train *train_args --seed K --out out/seed_K` for every seed not finished yet,
-    at most `processes` at a time, each started by `launch(train_args, seed, run)` (a child
-    process here, or `ray_launcher`'s tasks); returns the seeds that failed."""
+    """Run the request at `request_path` as seed K into out/seed_K for every seed not
+    finished yet, at most `processes` at a time, each started by `launch(request_path, seed,
+    run)` (a child process here, or `ray_launcher`'s tasks); returns the seeds that failed."""
     out.mkdir(parents=True, exist_ok=True)
     pending = [k for k in seeds if not (out / f"seed_{k}" / DONE_NAME).exists()]
     skipped = len(seeds) - len(pending)
@@ -184,7 +239,7 @@ def run_seeds(
                 seed = pending.pop(0)
                 run = out / f"seed_{seed}"
                 run.mkdir(exist_ok=True)
-                running[seed] = launch(train_args, seed, run)
+                running[seed] = launch(request_path, seed, run)
             time.sleep(0.5)
             for seed, launched in list(running.items()):
                 result = launched.poll()
@@ -207,24 +262,29 @@ def run_seeds(
     return sorted(failed)
 
 
-def _die_with_parent(parent: int, argv: list[str]) -> None:
-    """Become `mat *argv`, to be killed when the process that started it dies (Linux's
-    parent-death signal, kept across exec): a seed never outlives its `--seeds` run or its
-    Ray task, so a retry or a rerun never races a stray run in the same directory."""
+def _die_with_parent(parent: int) -> None:
+    """Be killed when the process that started this one dies (Linux's parent-death signal):
+    a seed never outlives its `--seeds` run or its Ray task, so a retry or a rerun never
+    races a stray run in the same directory."""
     with contextlib.suppress(OSError, AttributeError):  # not Linux: no such guarantee
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # the parent died before the signal was set
         sys.exit(f"the process that started this seed ({parent}) is gone")
-    command = python("mat_sdk.cli:main")
-    os.execv(command[0], [*command, *argv])
 
 
 PR_SET_PDEATHSIG = 1
 
 
 def seed_main() -> None:
-    """The seed child's entry point: `--parent PID COMMAND...` (see `seed_command`)."""
-    if len(sys.argv) < 3 or sys.argv[1] != "--parent":
+    """The seed child's entry point: `--parent PID REQUEST.json SEED` (`seed_command`)."""
+    if len(sys.argv) != 5 or sys.argv[1] != "--parent":
         sys.exit("usage: python -c 'from mat_sdk.multiseed import seed_main; seed_main()' "
-                 "--parent PID COMMAND...")  # fmt: skip
-    _die_with_parent(int(sys.argv[2]), sys.argv[3:])
+                 "--parent PID REQUEST.json SEED")  # fmt: skip
+    _die_with_parent(int(sys.argv[2]))
+    from mat_sdk.runs import RunRequest, train
+
+    request = RunRequest.from_json(Path(sys.argv[3]).read_text())
+    try:
+        train(seed_request(request, int(sys.argv[4])), progress_bar=False)
+    except (ValueError, OSError) as error:  # the user's to fix: one line, as `mat` says it
+        sys.exit(f"mat: {error}")

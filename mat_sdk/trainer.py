@@ -74,6 +74,16 @@ class Trainer:
         module-level function's `module:function` id everywhere."""
         self.config = TrainConfig.for_algo(algo, env=envs.id_of(env), **options)
         cfg = self.config
+        self.notes: list[str] = []  # decisions taken for the user, in words
+        self.resumed_with: dict[str, Any] = {}  # how-to-run changes of a resume (`load`)
+        identity = envs.family_identity(cfg.env, cfg.env_options)
+        if identity != cfg.env_options:
+            cfg.env_options = identity
+            self.notes.append(
+                f"{cfg.env} is a family: agents observe position={envs.FAMILY_IDENTITY!r} "
+                "(whether an agent is at an end of the chain, docs/TRANSFER.md); "
+                'env_options={"position": null} for none'
+            )
         self.device = cfg.resolve_device()
         torch.manual_seed(cfg.seed)
         cfg.configure_torch()
@@ -272,14 +282,19 @@ class Trainer:
     ) -> Trainer:
         """Rebuild a trainer from a checkpoint; `learn` then continues exactly where it stopped.
 
-        Overrides may change how to run (device, workers, out_dir), not what is trained.
+        Overrides may change how to run (device, workers, update_workers,
+        checkpoint_every); any other TrainConfig field given must be the checkpoint's own
+        (`checkpoint.training_options`). `resumed_with` holds what changed.
         A `module:function` env id the checkpoint records is imported only with
         `trust_env_code=True` (`envs.check_trusted`): a checkpoint from elsewhere runs no code.
         """
         payload = checkpoint.load(path)
-        train = checkpoint.training_options(payload, path, overrides)
+        train, changed = checkpoint.training_options(payload, path, overrides)
         envs.check_trusted([train["env"], *train.get("more_envs", [])], trust_env_code, str(path))
+        if envs.is_family(train["env"]):  # trained without an identity: keep it so
+            train["env_options"] = {"position": None, **train["env_options"]}
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
+        trainer.resumed_with = changed
         try:
             checkpoint.restore_training(trainer, payload, path)
         except BaseException:

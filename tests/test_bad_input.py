@@ -20,7 +20,8 @@ from helpers import TINY, make_checkpoint
 from pettingzoo import ParallelEnv
 
 from mat_sdk import checkpoint, envs, files
-from mat_sdk.envs.sources import MAX_SUBSTEPS, UserCodeError
+from mat_sdk.envs.base import UserCodeError
+from mat_sdk.envs.sources import MAX_SUBSTEPS
 from mat_sdk.trainer import Trainer
 
 ARM = """

@@ -55,12 +55,15 @@ from mat_sdk.envs.parallel import TeamParallelEnv
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
 from mat_sdk.envs.registry import (
     ENTRY_POINT_GROUP,
+    FAMILY_IDENTITY,
     EnvSpec,
     UntrustedEnvError,
     build_team,
     check_trusted,
+    family_identity,
     id_of,
     installed_ids,
+    is_family,
     register,
     resolve,
 )
@@ -71,6 +74,7 @@ from mat_sdk.envs.vector import TeamFactory, VecTeam
 
 __all__ = [
     "ENTRY_POINT_GROUP",
+    "FAMILY_IDENTITY",
     "Env",
     "EnvSpec",
     "JointTargets",
@@ -83,14 +87,17 @@ __all__ = [
     "UntrustedEnvError",
     "VecTeam",
     "check_trusted",
+    "family_identity",
     "from_dm_control",
     "from_mjcf",
     "from_pettingzoo",
     "id_of",
+    "is_family",
     "list_envs",
     "make",
     "make_team",
     "make_vec",
+    "random_rollout",
     "register",
     "resolve",
     "terms",
@@ -160,3 +167,29 @@ def list_envs() -> list[dict[str, Any]]:
         if close:
             close()
     return rows
+
+
+def random_rollout(
+    env: Env, steps: int, seed: int = 0, faults: Mapping[str, str] | None = None
+) -> tuple[TeamParallelEnv, list[float]]:
+    """`steps` env steps of a team acting uniformly at random over each agent's action space
+    (from streams independent of the env's own); -> the env and its episodes' returns (the
+    last one as far as it got)."""
+    import numpy as np
+
+    parallel = make(env, faults=faults, seed=seed)
+    streams = np.random.SeedSequence([seed, 1]).generate_state(len(parallel.possible_agents))
+    for agent, stream in zip(parallel.possible_agents, streams, strict=True):
+        parallel.action_space(agent).seed(int(stream))
+    parallel.reset(seed=seed)
+    episode_return, returns = 0.0, []
+    for _ in range(steps):
+        if not parallel.agents:
+            returns.append(episode_return)
+            episode_return = 0.0
+            parallel.reset()
+        actions = {a: parallel.action_space(a).sample() for a in parallel.agents}
+        _, rewards, _, _, _ = parallel.step(actions)
+        episode_return += next(iter(rewards.values()))
+    returns.append(episode_return)
+    return parallel, returns

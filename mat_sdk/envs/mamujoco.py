@@ -77,6 +77,12 @@ class MaMuJoCoTeam(ArrayTeam):
     action_type = "continuous"
     description = "Gymnasium-Robotics"
 
+    @staticmethod
+    def is_family(env_id: str) -> bool:
+        """Whether the id names a scenario of a family (`FAMILIES`): any K, one obs size."""
+        match = _ID.match(env_id)
+        return bool(match) and match.group(1) in FAMILIES
+
     def __init__(
         self,
         env_id: str,

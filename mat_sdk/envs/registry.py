@@ -140,6 +140,33 @@ def resolve(env_id: str | EnvSpec) -> EnvSpec:
     )
 
 
+# measured best of none / fraction / ends / near-ends / end-flags (docs/TRANSFER.md)
+FAMILY_IDENTITY = "end-flags"
+
+
+def is_family(env: str | EnvSpec) -> bool:
+    """Whether an env is a family (one observation size for any agent count), from its spec
+    alone; False for an id that names nothing (building it will say why)."""
+    try:
+        spec = resolve(env)
+    except ValueError:
+        return False
+    if isinstance(spec, RobotSpec):
+        return spec.variable_count
+    if isinstance(spec, TeamClassSpec) and spec.kind is MaMuJoCoTeam:
+        return MaMuJoCoTeam.is_family(spec.env_id)
+    return False
+
+
+def family_identity(env: str | EnvSpec, options: Mapping[str, Any]) -> dict[str, Any]:
+    """`options` for a new run: a family gets the count-independent identity that
+    transferred best across counts (`FAMILY_IDENTITY`), unless the options name one (None:
+    none). A checkpoint records it, so every tool rebuilds the same observations."""
+    if "position" in options or not is_family(env):
+        return dict(options)
+    return {**options, "position": FAMILY_IDENTITY}
+
+
 def build_team(env: str | EnvSpec, faults: Mapping[str, str] | None = None, **options: Any):
     """The team an id or spec names, with the options its team class takes."""
     check_faults(faults)
