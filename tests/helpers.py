@@ -6,7 +6,7 @@ import sys
 import torch
 from torch import nn
 
-from mat_sdk.bench.seeds import GAME  # noqa: F401  (the learning tests' recipe)
+from mat_sdk.recipes import GAME  # noqa: F401  (the learning tests' recipe)
 from mat_sdk.trainer import Trainer
 
 TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}

@@ -345,7 +345,7 @@ def zoo(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("name", ["../x", "/tmp/abs", "", "with space", ".hidden"])
 def test_zoo_add_refuses_names_that_are_not_names(zoo, name):
-    from mat_sdk.bench.zoo import add
+    from mat_sdk.zoo import add
 
     ckpt = make_checkpoint(zoo / "c.pt", "coordination-3")
     with pytest.raises(ValueError, match="zoo name"):
@@ -357,7 +357,7 @@ def test_zoo_add_refuses_names_that_are_not_names(zoo, name):
 
 
 def test_zoo_add_replaces_only_with_force_and_leaves_nothing_when_refused(zoo):
-    from mat_sdk.bench.zoo import add
+    from mat_sdk.zoo import add
 
     ckpt = make_checkpoint(zoo / "c.pt", "coordination-3")
     with pytest.raises(ValueError, match="episodes must be an integer >= 1"):
@@ -373,7 +373,7 @@ def test_zoo_add_replaces_only_with_force_and_leaves_nothing_when_refused(zoo):
 
 @pytest.mark.parametrize("card", ["{", "[1, 2]", '{"name": "x"}'], ids=["invalid", "list", "keys"])
 def test_a_broken_card_is_named_and_the_others_still_list(zoo, card):
-    from mat_sdk.bench.zoo import add
+    from mat_sdk.zoo import add
 
     add(make_checkpoint(zoo / "c.pt", "coordination-3"), "good", "x", episodes=2)
     (zoo / "zoo" / "broken").mkdir()

@@ -321,3 +321,23 @@ def test_resume_applies_how_to_run_and_refuses_what_to_train(tmp_path):
     same = runner.invoke(main, [*resume, "--num-envs", "4", "--workers", "1"])
     assert same.exit_code == 0, same.output
     assert "at 40 steps (with workers=1)" in same.output  # applied, and said so
+
+
+def test_trainer_and_mat_train_build_the_same_run_for_a_family(tmp_path):
+    """The library decides the family identity where Trainer builds its env, so the Python API
+    and the command line train the same policy from the same id."""
+    from dataclasses import asdict
+
+    from mat_sdk.trainer import Trainer
+
+    result = CliRunner().invoke(
+        main, ["train", "swimmer-4", "--steps", "40", "--out", str(tmp_path), *TINY_TRAIN]
+    )
+    assert result.exit_code == 0, result.output
+    cli = checkpoint.load(tmp_path / "checkpoint.pt")["config"]["train"]
+    options = {"num_envs": 4, "rollout_length": 10, "num_minibatches": 2, "ppo_epochs": 1}
+    with Trainer("swimmer-4", env_options={"episode_limit": 20}, **options) as trainer:
+        api = asdict(trainer.config)
+        assert trainer.notes and "is a family" in trainer.notes[0]
+    assert api["env_options"] == {"episode_limit": 20, "position": "end-flags"}
+    assert api == cli

@@ -18,13 +18,12 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.test import parallel_api_test
 
-from mat_sdk import envs
-from mat_sdk.bench import seeds
+from mat_sdk import envs, recipes
 from mat_sdk.ppo import LossCoefficients, minibatch_loss, ppo_loss
 from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
-seeds.with_examples()
+recipes.with_examples()
 import my_robots  # noqa: E402  (examples/, put on the path just above)
 
 ARM_XML = my_robots.MODEL.read_text()
@@ -377,20 +376,20 @@ def test_a_module_function_id_that_cannot_be_found_names_what_was_looked_for(env
 
 # ------------------------------------------------------------------ learning
 def test_mat_learns_the_custom_arm():
-    assert seeds.arm_return(0) >= seeds.beats_random(seeds.ARM_ENV, seeds.ARM_FRACTION)
+    assert recipes.arm_return(0) >= recipes.beats_random(recipes.ARM_ENV, recipes.ARM_FRACTION)
 
 
 @pytest.mark.slow
 def test_mat_learns_mpe_simple_spread():
-    score = seeds.spread_return(0, "mpe_envs:spread")
-    assert score >= seeds.beats_random("mpe_envs:spread", seeds.SPREAD_FRACTION)
+    score = recipes.spread_return(0, "mpe_envs:spread")
+    assert score >= recipes.beats_random("mpe_envs:spread", recipes.SPREAD_FRACTION)
 
 
 @pytest.mark.slow
 def test_mat_learns_mpe_simple_spread_with_continuous_actions():
     env_id = "mpe_envs:spread_continuous"
-    score = seeds.spread_return(0, env_id, seeds.SPREAD_CONTINUOUS_STEPS)
-    assert score >= seeds.beats_random(env_id, seeds.SPREAD_CONTINUOUS_FRACTION)
+    score = recipes.spread_return(0, env_id, recipes.SPREAD_CONTINUOUS_STEPS)
+    assert score >= recipes.beats_random(env_id, recipes.SPREAD_CONTINUOUS_FRACTION)
 
 
 @pytest.mark.parametrize("env_id", ["mpe_envs:spread", "mpe_envs:spread_continuous"])
@@ -470,7 +469,7 @@ def test_the_tutorial_as_written_trains_an_arm_that_beats_a_random_team(tmp_path
     assert "over 16 episodes" in outputs["eval runs/spread/checkpoint.pt"]
     assert (tmp_path / "runs/arm-no-wrist/checkpoint.pt").is_file()
     found = re.search(r"return (-?[\d.]+) \+-", outputs["eval runs/arm/checkpoint.pt"])
-    assert float(found.group(1)) >= seeds.beats_random(seeds.ARM_ENV, seeds.ARM_FRACTION)
+    assert float(found.group(1)) >= recipes.beats_random(recipes.ARM_ENV, recipes.ARM_FRACTION)
 
 
 def test_the_tutorials_python_runs_and_its_module_is_the_example():

@@ -14,9 +14,9 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs, processes
-from mat_sdk.bench.seeds import with_examples
 from mat_sdk.envs.robots import spec_for
 from mat_sdk.envs.vector import TeamFactory, VecTeam
+from mat_sdk.recipes import with_examples
 
 ROBOT_IDS = [
     "cheetah-6x1",

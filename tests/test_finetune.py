@@ -7,27 +7,27 @@ import pytest
 from click.testing import CliRunner
 from helpers import GAME
 
-from mat_sdk.bench import seeds
+from mat_sdk import recipes
 from mat_sdk.cli import main
 from mat_sdk.trainer import Trainer
 
-CHANGE = seeds.FINETUNE_CHANGE  # 3 agents -> 2; agent_2 now follows agent_0 directly
+CHANGE = recipes.FINETUNE_CHANGE  # 3 agents -> 2; agent_2 now follows agent_0 directly
 
 
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory):
-    return seeds.pretrain_game(tmp_path_factory.mktemp("pre") / "pre.pt")
+    return recipes.pretrain_game(tmp_path_factory.mktemp("pre") / "pre.pt")
 
 
 def test_finetuning_adapts_faster_than_training_from_scratch(pretrained, tmp_path):
     """One seed is safe: `mat bench seeds --recipe finetune --recipe finetune-gain`."""
-    finetuned, scratch, final = seeds.finetune_against_scratch(pretrained, tmp_path / "ft")
-    assert len(finetuned) == len(scratch) == seeds.FINETUNE_UPDATES
+    finetuned, scratch, final = recipes.finetune_against_scratch(pretrained, tmp_path / "ft")
+    assert len(finetuned) == len(scratch) == recipes.FINETUNE_UPDATES
     assert np.mean(finetuned[-5:]) >= 0.95 and final >= 0.95, (finetuned, final)
     assert np.mean(finetuned[-5:]) >= np.mean(scratch[-5:]) + 0.15, (finetuned, scratch)
     summary = json.loads((tmp_path / "ft" / "finetune.json").read_text())
     assert summary["agents"] == ["agent_0", "agent_2"]
-    assert summary["steps"] == seeds.FINETUNE_UPDATES * GAME["num_envs"] * GAME["rollout_length"]
+    assert summary["steps"] == recipes.FINETUNE_UPDATES * GAME["num_envs"] * GAME["rollout_length"]
     assert len(summary["zero_shot"]["returns"]) == 20 and summary["final"]["mean"] >= 0.95
 
 

@@ -4,7 +4,7 @@ import pytest
 import torch
 from helpers import trained_like
 
-from mat_sdk.bench import seeds
+from mat_sdk import recipes
 from mat_sdk.onnx_actor import OnnxActor
 from mat_sdk.trainer import Trainer
 
@@ -29,5 +29,5 @@ def test_onnx_actor_log_probs_and_values_match_torch(env_id):
 
 def test_onnx_rollouts_learn_the_coordination_game():
     """One seed is safe: `mat bench seeds --recipe game-onnx`."""
-    learned = seeds.onnx_game_return()
+    learned = recipes.onnx_game_return()
     assert learned >= 0.9, learned  # random play: 0.07

@@ -14,8 +14,8 @@ import pytest
 from helpers import TINY
 
 from mat_sdk import envs
-from mat_sdk.bench.seeds import with_examples
 from mat_sdk.envs import terms
+from mat_sdk.recipes import with_examples
 from mat_sdk.trainer import Trainer
 
 with_examples()

@@ -17,9 +17,9 @@ from helpers import make_checkpoint
 import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
-from mat_sdk.bench.seeds import with_examples
 from mat_sdk.envs import make_team
 from mat_sdk.evaluation import LoadedPolicy
+from mat_sdk.recipes import with_examples
 
 COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
 

@@ -13,23 +13,22 @@ import pytest
 import torch
 from helpers import GAME
 
-from mat_sdk import checkpoint, envs
-from mat_sdk.bench import seeds
+from mat_sdk import checkpoint, envs, recipes
 from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
 
 
 def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
     """One seed is safe: `mat bench seeds --recipe game-mat --recipe game-mat-dec` shows the
     bounds hold on every seed swept (BENCHMARKS.md)."""
-    mat, dec = seeds.game_return("mat"), seeds.game_return("mat-dec")
+    mat, dec = recipes.game_return("mat"), recipes.game_return("mat-dec")
     assert mat >= 0.9, mat  # random play scores 2/27 = 0.07
     assert dec <= 0.5, dec  # decentralised actors can reach at most 1/3
     assert mat - dec >= 0.4
 
 
 def test_short_continuous_run_beats_a_random_team():
-    bound = seeds.continuous_bound()
-    learned = seeds.continuous_return()
+    bound = recipes.continuous_bound()
+    learned = recipes.continuous_return()
     assert learned >= bound, (learned, bound)
 
 

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from mat_sdk.bench import machine
-from mat_sdk.bench.seeds import EVALUATION_SEED, SPREAD_EVALUATIONS, spread_return
 from mat_sdk.processes import usable_cores
+from mat_sdk.recipes import EVALUATION_SEED, SPREAD_EVALUATIONS, spread_return
 from mat_sdk.run_log import METRICS_NAME, read_metrics
 from mat_sdk.timing import print_table
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from mat_sdk.bench.seeds import EVALUATION_SEED
+from mat_sdk.recipes import EVALUATION_SEED
 
 FAMILY = "mamujoco:ManySegmentSwimmer-{}x2"
 # The paper's MuJoCo recipe but lr 3e-4, 5 epochs (half the update cost) and gamma 0.999 (a

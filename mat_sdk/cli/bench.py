@@ -152,8 +152,8 @@ def bench_seeds(recipes: tuple[str, ...], seeds: int, first: int, processes: int
       mat bench seeds --recipe game-mat --seeds 16
       mat bench seeds --seeds 4 --first 100      every recipe on seeds 100-103
     """
-    from mat_sdk.bench.seeds import RECIPES
     from mat_sdk.bench.seeds import main as run
+    from mat_sdk.recipes import RECIPES
 
     unknown = set(recipes) - set(RECIPES)
     if unknown:

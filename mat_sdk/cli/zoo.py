@@ -26,7 +26,7 @@ def zoo(context: click.Context) -> None:
     """
     if context.invoked_subcommand is not None:
         return
-    from mat_sdk.bench.zoo import cards
+    from mat_sdk.zoo import cards
 
     found, problems = cards()
     for problem in problems:
@@ -67,7 +67,7 @@ def zoo_add(
     NAME is letters, digits, '.', '_' and '-'. The model is exported, evaluated and written
     beside the zoo, then moved into place: a failure leaves the zoo as it was.
     """
-    from mat_sdk.bench.zoo import add, card_text
+    from mat_sdk.zoo import add, card_text
 
     card = add(run, name, made_by, episodes, force=force, trust_env_code=trust_env_code)
     click.echo(card_text(card))

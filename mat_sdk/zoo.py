@@ -25,8 +25,8 @@ from scipy import stats
 from mat_export import export
 from mat_runtime.zoo import NAME, models, zoo_dir
 from mat_sdk import checkpoint, envs, files
-from mat_sdk.bench.seeds import EVALUATION_SEED, random_team_return
 from mat_sdk.evaluation import LoadedPolicy, evaluate
+from mat_sdk.recipes import EVALUATION_SEED, random_team_return
 
 
 def _commit() -> str:
