@@ -11,5 +11,6 @@ fixed-rate control loop with its tick statistics.
 from mat_runtime import loop
 from mat_runtime.errors import BundleError, InputError, MatRuntimeError
 from mat_runtime.policy import Policy
+from mat_runtime.step import StepPolicy
 
-__all__ = ["BundleError", "InputError", "MatRuntimeError", "Policy", "loop"]
+__all__ = ["BundleError", "InputError", "MatRuntimeError", "Policy", "StepPolicy", "loop"]

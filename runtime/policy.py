@@ -42,6 +42,7 @@ from mat_runtime.wiring import Wiring, check_wiring
 # The oldest onnxruntime verified to run the graphs of each opset the exporter writes:
 # `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
 ONNXRUNTIME_FOR_OPSET = {24: "1.24.1"}
+GRAPHS = ("decode", "step")  # one call per control step, or one per agent (`step.py`)
 GRAPH = "decode.onnx"  # any agent count; `decode_nN.onnx`: unrolled for exactly N (faster)
 # The most agents one call serves. Full attention's memory grows with n^2 (about 1.5 GB at
 # 16,384 agents); far beyond it ONNX Runtime fails to allocate.
@@ -135,8 +136,13 @@ class Policy:
         threads: int = 1,
         providers: list[str] | None = None,
         spin: bool = False,
+        graph: str = "decode",
     ) -> Policy:
         """Verify the bundle (format, version, sha256 of each graph), then build the sessions.
+
+        `graph="step"` decodes agent by agent through `encoder.onnx` and the KV-cached
+        `decoder_step.onnx` instead of one `decode.onnx` call (`mat_runtime.step`: the same
+        actions, and `stream` yields each agent's as it is decoded).
 
         `threads`: ONNX Runtime intra-op threads; 1 is fastest for MAT's small kernels and
         keeps the controller's other cores free. `providers`: ONNX Runtime execution providers
@@ -147,6 +153,12 @@ class Policy:
             raise InputError(f"threads must be an int >= 1, got {threads!r}")
         if not isinstance(spin, bool):
             raise InputError(f"spin must be True or False, got {spin!r}")
+        if graph not in GRAPHS:
+            raise InputError(f"graph must be one of {GRAPHS}, got {graph!r}")
+        if graph == "step" and cls is Policy:
+            from mat_runtime.step import StepPolicy
+
+            return StepPolicy.load(path, threads, providers, spin)
         available = ort.get_available_providers()
         providers = list(providers or ["CPUExecutionProvider"])
         unknown = [p for p in providers if p not in available]

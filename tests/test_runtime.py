@@ -411,6 +411,37 @@ def test_loading_while_an_export_replaces_the_bundle_never_fails(bundles, tmp_pa
     assert not failures, failures[:3]
 
 
+@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-window"])
+def test_the_step_path_decodes_agent_by_agent_equal_to_decode_onnx(bundles, name):
+    """`Policy.load(bundle, graph="step")`: encoder.onnx, then decoder_step.onnx per agent with
+    the KV caches; the same actions, values and distributions as one decode.onnx call, and
+    `stream` yields them agent by agent."""
+    whole = Policy.load(bundles[name][1])
+    stepped = Policy.load(bundles[name][1], graph="step")
+    assert isinstance(stepped, mat_runtime.StepPolicy)
+    for n in (1, 2, 3, 6, 17):
+        obs = _obs(whole, n, seed=n)
+        np.testing.assert_allclose(stepped.act(obs), whole.act(obs), atol=1e-5)
+        kwargs = {"deterministic": False, "seed": 7, "return_values": True}
+        (a, extra), (b, theirs) = stepped.act(obs, **kwargs), whole.act(obs, **kwargs)
+        np.testing.assert_allclose(a, b, atol=1e-5)
+        for key in theirs:
+            np.testing.assert_allclose(extra[key], theirs[key], rtol=1e-5, atol=1e-4)
+        streamed = list(stepped.stream(obs, deterministic=False, seed=7))
+        assert [agent for agent, _ in streamed] == list(range(n))
+        np.testing.assert_allclose(np.stack([action for _, action in streamed]), a, atol=1e-6)
+    batch = _obs(whole, 3, batch=4)
+    np.testing.assert_allclose(stepped.act(batch), whole.act(batch), atol=1e-5)
+
+
+def test_the_step_path_is_for_autoregressive_bundles(bundles):
+    for name in ("mat-dec", "mappo"):
+        with pytest.raises(BundleError, match="decoding agent by agent is for MAT bundles"):
+            Policy.load(bundles[name][1], graph="step")
+    with pytest.raises(InputError, match="graph must be one of"):
+        Policy.load(bundles["mat"][1], graph="steps")
+
+
 def test_discrete_agents_with_fewer_choices_never_take_their_padding(tmp_path):
     """MPE's speaker has 3 choices, its listener 5: the bundle records each agent's count and
     the runtime masks the speaker's two padding choices, also without an `available` mask."""

@@ -7,7 +7,8 @@
 (b') the same O(n^2) loop on our decoder (`official_loop_act`: fused attention, no
     distribution), to show how much of (b) is the algorithm and how much the code;
 (c) torch cached: our KV-cached `MAT.act`;
-(d) step graph: `encoder.onnx`, then `decoder_step.onnx` called from Python once per agent.
+(d) step graph: `Policy.load(bundle, graph="step")`, `encoder.onnx` then `decoder_step.onnx`
+    once per agent with the KV caches (`mat_runtime.step`).
 B = 1 unless stated, one thread everywhere, deterministic actions, interleaved rounds.
 """
 
@@ -22,9 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mat_export.exporter import decode_with_ort, export
+from mat_export.exporter import export
 from mat_runtime import Policy
-from mat_runtime.policy import session
 from mat_sdk.bench import machine
 from mat_sdk.bench.reference import OfficialStyleMAT
 from mat_sdk.timing import print_table
@@ -89,22 +89,17 @@ def official_loop_act(policy, obs: torch.Tensor) -> torch.Tensor:
 
 
 def _variants(bundle: Path, policy, obs: np.ndarray) -> dict[str, Callable[[], object]]:
-    encoder = session((bundle / "encoder.onnx").read_bytes())
-    step = session((bundle / "decoder_step.onnx").read_bytes())
     runtime = Policy.load(bundle, threads=1)
+    stepped = Policy.load(bundle, threads=1, graph="step")
     x = torch.from_numpy(obs)
     official = OfficialStyleMAT(copy.deepcopy(policy), obs.shape[1]).eval()
-
-    def step_graph():
-        rep, _ = encoder.run(None, {"obs": obs})
-        return decode_with_ort(policy, step, rep, None)
 
     return {
         "runtime": lambda: runtime.act(obs),
         "official": lambda: official.act(x),
         "official loop": lambda: official_loop_act(policy, x),
         "torch cached": lambda: policy.act(x, deterministic=True),
-        "step graph": step_graph,
+        "step graph": lambda: stepped.act(obs),
     }
 
 
