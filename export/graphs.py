@@ -10,8 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, Policy
-
-OBS_CLIP = 10.0
+from mat_sdk.normalization import RunningMeanStd
 
 
 def cache_names(n_block: int) -> list[tuple[str, str]]:
@@ -27,15 +26,17 @@ def cache_names(n_block: int) -> list[tuple[str, str]]:
 
 
 class ObsNormalizer(nn.Module):
-    def __init__(self, mean: Tensor | None, var: Tensor | None, obs_dim: int):
+    """The training normaliser (`RunningMeanStd`, or none) as graph operations."""
+
+    def __init__(self, running: RunningMeanStd | None, obs_dim: int):
         super().__init__()
-        mean = torch.zeros(obs_dim) if mean is None else mean.float()
+        mean = torch.zeros(obs_dim) if running is None else torch.from_numpy(running.mean).float()
         scale = (
-            torch.ones(obs_dim) if var is None else 1.0 / torch.sqrt(var.double() + 1e-8).float()
+            torch.ones(obs_dim) if running is None else torch.from_numpy(running.scale()).float()
         )
         self.register_buffer("mean", mean)
         self.register_buffer("scale", scale)
-        self.clip = OBS_CLIP if var is not None else None
+        self.clip = None if running is None else running.clip
 
     def forward(self, obs: Tensor) -> Tensor:
         x = (obs - self.mean) * self.scale

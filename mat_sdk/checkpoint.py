@@ -337,6 +337,22 @@ def _check_train_config(train: dict[str, Any], fail) -> None:
         fail("config.train", f"is invalid ({error})")
 
 
+def restore_policy(payload: dict[str, Any], path: str | os.PathLike):
+    """The policy a checkpoint holds, in eval mode, and the observation normaliser it was
+    trained with (None when it trained on raw observations): what every reader acts with."""
+    from mat_sdk.model import ModelConfig, build_policy
+    from mat_sdk.normalization import RunningMeanStd
+
+    policy = build_policy(ModelConfig.from_dict(payload["config"]["model"]))
+    load_weights(policy, payload["model"], path)
+    policy.eval()
+    norm = None
+    if payload["config"]["train"]["normalize_obs"]:
+        norm = RunningMeanStd(policy.cfg.obs_dim)
+        norm.load_state_dict(payload["obs_norm"])
+    return policy, norm
+
+
 def load_weights(module: torch.nn.Module, state: dict[str, Any], path: str | os.PathLike) -> None:
     """`module.load_state_dict(state)`, or `CheckpointError` if the weights do not fit it."""
     try:

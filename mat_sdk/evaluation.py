@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from mat_sdk import checkpoint, envs
-from mat_sdk.model import ModelConfig, Policy, build_policy
+from mat_sdk.model import Policy
 from mat_sdk.normalization import RunningMeanStd
 
 VIDEO_SUFFIXES = (".mp4", ".gif")  # what write_video's imageio writers produce
@@ -29,13 +29,7 @@ class LoadedPolicy:
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> LoadedPolicy:
         payload = checkpoint.load(path)
-        policy = build_policy(ModelConfig.from_dict(payload["config"]["model"]))
-        checkpoint.load_weights(policy, payload["model"], path)
-        policy.eval()
-        norm = None
-        if payload["config"]["train"]["normalize_obs"]:
-            norm = RunningMeanStd(policy.cfg.obs_dim)
-            norm.load_state_dict(payload["obs_norm"])
+        policy, norm = checkpoint.restore_policy(payload, path)
         return cls(policy, norm, payload["config"], str(path))
 
     def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):

@@ -6,11 +6,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+OBS_CLIP = 10.0  # normalised observations are clipped to +-this (the official code's)
+OBS_EPSILON = 1e-8  # added to the variance before its square root
+
 
 class RunningMeanStd:
     """Per-feature running mean/variance of observations (Welford's parallel update)."""
 
-    def __init__(self, size: int, clip: float = 10.0):
+    def __init__(self, size: int, clip: float = OBS_CLIP):
         self.mean = np.zeros(size)
         self.var = np.ones(size)
         self.count = 1e-4
@@ -26,8 +29,12 @@ class RunningMeanStd:
         ) / total
         self.count = total
 
+    def scale(self) -> np.ndarray:
+        """What a centred observation is multiplied by: 1 / sqrt(var + epsilon)."""
+        return 1.0 / np.sqrt(self.var + OBS_EPSILON)
+
     def normalize(self, obs: np.ndarray) -> np.ndarray:
-        scaled = (obs - self.mean) / np.sqrt(self.var + 1e-8)
+        scaled = (obs - self.mean) * self.scale()
         return np.clip(scaled, -self.clip, self.clip).astype(np.float32)
 
     def state_dict(self) -> dict:

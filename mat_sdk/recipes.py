@@ -163,7 +163,7 @@ def continuous_bound() -> float:
 
 # Your own envs (docs/CUSTOM_ENVS.md): `examples/my_robots.py` (a custom MJCF arm) and
 # `examples/mpe_envs.py` (MPE through PettingZoo), by their module:function ids.
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 ARM_ENV = "my_robots:arm"
 ARM = {**CONTINUOUS, "lr": 3e-3, "ppo_epochs": 10, "num_minibatches": 2}
 ARM_STEPS = 12_000

@@ -247,7 +247,7 @@ def test_a_full_disk_during_export_keeps_the_old_bundle(tmp_path, monkeypatch):
     def no_room(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(exporter, "_finish_graph", no_room)
+    monkeypatch.setattr(exporter, "finish_graph", no_room)
     with pytest.raises(files.WriteFailed, match=r"cannot write .*bundle: no space left on device"):
         export(ckpt, tmp_path / "bundle", force=True, agent_counts=(1,))
     assert {p.name: p.read_bytes() for p in (tmp_path / "bundle").iterdir()} == before

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from helpers import make_checkpoint
 
 from mat_export import ExportError, export
-from mat_export import exporter as exporter_module
+from mat_export import parity as parity_module
 from mat_sdk import checkpoint
 from mat_sdk.cli import main
 
@@ -106,7 +106,7 @@ def test_windowed_attention_exports_at_parity_beyond_its_window(tmp_path, env_id
 
 
 def test_disagreement_refuses_and_leaves_nothing(mat_checkpoint, tmp_path, monkeypatch):
-    monkeypatch.setattr(exporter_module, "PARITY_LIMIT", -1.0)
+    monkeypatch.setattr(parity_module, "PARITY_LIMIT", -1.0)
     with pytest.raises(ExportError, match="disagrees with torch"):
         export(mat_checkpoint, tmp_path / "bundle")
     assert list(tmp_path.iterdir()) == []
