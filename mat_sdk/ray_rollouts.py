@@ -22,7 +22,8 @@ from dataclasses import asdict
 from typing import Any
 
 import numpy as np
-import torch
+
+from mat_sdk.rollout import Trajectory
 
 log = logging.getLogger(__name__)
 _REPLACEMENT_SEED_STRIDE = 7919  # a fresh worker's envs must not replay the dead one's
@@ -54,7 +55,7 @@ class RolloutWorker:
     def pid(self) -> int:
         return os.getpid()
 
-    def collect(self, weights: dict, obs_norm: dict) -> dict[str, Any]:
+    def collect(self, weights: dict, obs_norm: dict) -> Trajectory:
         self.collector.policy.load_state_dict(weights)
         # As in a local run, the observation statistics follow the observations as they
         # arrive; the learner then folds every worker's raw observations into its own.
@@ -130,7 +131,7 @@ class RayRollouts:
                     log.warning("Ray rollout worker %d died (%s); replacing it", k, error)
                     self.actors[k] = self._start(k, generation=self.replacements)
                     future = self.actors[k].collect.remote(weights, obs_norm)
-        return _join(parts, trainer.device)
+        return Trajectory.join(parts, trainer.device)
 
     def close(self) -> None:
         for actor in self.actors:
@@ -138,18 +139,3 @@ class RayRollouts:
         self.actors = []
         if self._started_ray:
             self.ray.shutdown()
-
-
-def _join(parts: list[dict[str, Any]], device: torch.device) -> dict[str, Any]:
-    joined: dict[str, Any] = {}
-    for key in parts[0]:
-        values = [part[key] for part in parts]
-        if key == "finished":
-            joined[key] = [r for value in values for r in value]
-        elif key == "raw_obs":
-            joined[key] = np.concatenate(values)
-        elif key == "last_values":
-            joined[key] = torch.cat(values, dim=0).to(device)
-        else:  # [T, E, ...]
-            joined[key] = torch.cat(values, dim=1).to(device)
-    return joined

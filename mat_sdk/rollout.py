@@ -1,9 +1,9 @@
 """`RolloutCollector`: a policy acting in vectorised envs, and what PPO learns from it.
 
     collector = RolloutCollector(env, policy, config)
-    trajectories = collector.collect()                   # rollout_length steps of every env
-    batch = collector.advantages(trajectories, value_norm)  # GAE, returns
-    rows = RolloutCollector.rows(batch, config.advantage_std_floor)  # the update's rows
+    trajectory = collector.collect()                     # rollout_length steps of every env
+    trajectory = collector.advantages(trajectory, value_norm)  # with GAE and returns
+    rows = trajectory.rows(config.advantage_std_floor)   # the update's rows
 
 The trainer, the Ray rollout workers, the benchmarks and the tests all collect through this
 one class. It owns what acting needs: the observation normaliser (updated as observations
@@ -12,6 +12,8 @@ arrive), the sampling generator, the agent-order generator, and the envs' next o
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -25,7 +27,68 @@ from mat_sdk.model import Policy, in_agent_order
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.ppo import gae
 
-TRAJECTORY_KEYS = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done")
+STEP_FIELDS = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done")
+MASK_FIELDS = ("order", "active", "available", "action_dims")  # where the envs have them
+
+
+@dataclass
+class Trajectory:
+    """One update's data: tensors [T, E, ...] of `rollout_length` steps of every env (rewards
+    and the episode flags [T, E, 1 or n, 1]); the masks where the envs have them (`order` when
+    shuffling agents; `active`, `available`, `action_dims`: `RolloutCollector.masks`,
+    `action_dims`); the values to bootstrap from at truncations and after the last step; the
+    returns of the episodes that finished; the raw observations when asked (Ray workers);
+    and, once `RolloutCollector.advantages` has run, the advantages and returns."""
+
+    obs: Tensor
+    actions: Tensor
+    log_probs: Tensor
+    values: Tensor
+    rewards: Tensor
+    terminated: Tensor
+    done: Tensor
+    bootstrap: Tensor  # [T, E, n, 1]
+    last_values: Tensor  # [E, n, 1]
+    finished: list[float]
+    order: Tensor | None = None
+    active: Tensor | None = None
+    available: Tensor | None = None
+    action_dims: Tensor | None = None
+    raw_obs: np.ndarray | None = None
+    advantages: Tensor | None = None
+    returns: Tensor | None = None
+
+    def rows(self, std_floor: float = 0.0) -> dict[str, Tensor]:
+        """The update's rows [T * E, ...] of every per-step tensor the update reads, with the
+        advantages normalised over all of them (their std floored at `std_floor`)."""
+        if self.advantages is None:
+            raise ValueError("rows need the advantages: RolloutCollector.advantages first")
+        names = ("obs", "actions", "log_probs", "values", *MASK_FIELDS, "advantages", "returns")
+        flat = {k: getattr(self, k).flatten(0, 1) for k in names if getattr(self, k) is not None}
+        advantages = flat["advantages"]
+        # over the agents in their episode only, as the official code (its active masks)
+        counted = advantages if "active" not in flat else advantages[flat["active"] > 0]
+        scale = counted.std().clamp_min(std_floor) + 1e-5
+        flat["advantages"] = (advantages - counted.mean()) / scale
+        return flat
+
+    @classmethod
+    def join(cls, parts: list[Trajectory], device: torch.device) -> Trajectory:
+        """Several workers' trajectories of the same steps as one (envs side by side)."""
+        joined: dict[str, Any] = {}
+        for item in dataclasses.fields(cls):
+            values = [getattr(part, item.name) for part in parts]
+            if values[0] is None:
+                joined[item.name] = None
+            elif item.name == "finished":
+                joined[item.name] = [r for value in values for r in value]
+            elif item.name == "raw_obs":
+                joined[item.name] = np.concatenate(values)
+            elif item.name == "last_values":
+                joined[item.name] = torch.cat(values, dim=0).to(device)
+            else:  # [T, E, ...]
+                joined[item.name] = torch.cat(values, dim=1).to(device)
+        return cls(**joined)
 
 
 class RolloutCollector:
@@ -111,22 +174,16 @@ class RolloutCollector:
         return torch.as_tensor(dims, dtype=torch.float32, device=self.device)
 
     @torch.no_grad()
-    def collect(self, update_norm: bool = True, keep_raw: bool = False) -> dict[str, Any]:
-        """`rollout_length` steps of every env with the current policy: tensors [T, E, ...]
-        (`TRAJECTORY_KEYS`; `order` when shuffling; `active`, `available`, `action_dims`
-        where the envs have them, see `masks` and `action_dims`), the values to bootstrap
-        from (`bootstrap` at truncations, `last_values`), and the returns of the episodes
-        that finished (`finished`).
+    def collect(self, update_norm: bool = True, keep_raw: bool = False) -> Trajectory:
+        """`rollout_length` steps of every env with the current policy (`Trajectory`).
 
         `update_norm`: update the observation statistics as observations arrive.
-        `keep_raw`: also return the raw observations (`raw_obs`), for a learner to fold into
+        `keep_raw`: also keep the raw observations (`raw_obs`), for a learner to fold into
         its own statistics (Ray workers collect with a copy of the learner's).
         """
         cfg, env, device = self.config, self.env, self.device
         T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
-        buffers: dict[str, list] = {
-            name: [] for name in (*TRAJECTORY_KEYS, "order", "active", "available")
-        }
+        buffers: dict[str, list] = {name: [] for name in (*STEP_FIELDS, *MASK_FIELDS[:3])}
         raw = [self.next_obs]
         bootstrap = torch.zeros(T, E, n, 1, device=device)
         finished: list[float] = []
@@ -163,58 +220,39 @@ class RolloutCollector:
             if t < T - 1:
                 raw.append(next_obs)
             obs = self.observe(next_obs, update=update_norm and t < T - 1)
-        trajectories: dict[str, Any] = {k: torch.stack(buffers[k]) for k in TRAJECTORY_KEYS}
-        for key in ("order", "active", "available"):
-            if buffers[key][0] is not None:
-                trajectories[key] = torch.stack(buffers[key])
+        stacked = {
+            name: torch.stack(values) if values[0] is not None else None
+            for name, values in buffers.items()
+        }
         dims = self.action_dims()
-        if dims is not None:
-            trajectories["action_dims"] = dims.expand(T, E, n, -1)
-        trajectories["bootstrap"] = bootstrap
-        trajectories["last_values"] = self.policy.values(obs)
-        trajectories["finished"] = finished
-        if keep_raw:
-            trajectories["raw_obs"] = np.concatenate(raw)
-        return trajectories
+        return Trajectory(
+            **stacked,
+            bootstrap=bootstrap,
+            last_values=self.policy.values(obs),
+            finished=finished,
+            action_dims=None if dims is None else dims.expand(T, E, n, -1),
+            raw_obs=np.concatenate(raw) if keep_raw else None,
+        )
 
     def _flags(self, flags: np.ndarray) -> Tensor:
         return torch.as_tensor(flags, dtype=torch.float32, device=self.device)
 
-    def advantages(self, batch: dict[str, Any], value_norm: ValueNorm) -> dict[str, Tensor]:
-        """GAE on the shared reward, per agent, with ValueNorm'd values de-normalised; adds
-        `advantages` and `returns` to the trajectories (`finished` must be taken out)."""
+    def advantages(self, trajectory: Trajectory, value_norm: ValueNorm) -> Trajectory:
+        """The trajectory with its advantages (GAE on the shared reward, per agent) and
+        returns, from ValueNorm'd values de-normalised."""
         cfg = self.config
         denorm = value_norm.denormalize
-        bootstrap, last_values = batch.pop("bootstrap"), batch.pop("last_values")
-        values = denorm(batch["values"])
-        next_values = torch.cat((values[1:], denorm(last_values)[None]))
-        ended = batch["done"].expand_as(next_values) > 0
-        next_values = torch.where(ended, denorm(bootstrap), next_values)
+        values = denorm(trajectory.values)
+        next_values = torch.cat((values[1:], denorm(trajectory.last_values)[None]))
+        ended = trajectory.done.expand_as(next_values) > 0
+        next_values = torch.where(ended, denorm(trajectory.bootstrap), next_values)
         advantages = gae(
-            batch["rewards"],
+            trajectory.rewards,
             values,
             next_values,
-            batch["terminated"],
-            batch["done"],
+            trajectory.terminated,
+            trajectory.done,
             cfg.gamma,
             cfg.gae_lambda,
         )
-        batch["returns"] = advantages + values
-        batch["advantages"] = advantages
-        return batch
-
-    @staticmethod
-    def rows(batch: dict[str, Tensor], std_floor: float = 0.0) -> dict[str, Tensor]:
-        """A rollout's tensors [T, E, ...] as the update's rows [T * E, ...], with the
-        advantages normalised over all of them (their std floored at `std_floor`)."""
-        flat = {
-            k: v.flatten(0, 1)
-            for k, v in batch.items()
-            if k not in ("rewards", "terminated", "done")
-        }
-        advantages = flat["advantages"]
-        # over the agents in their episode only, as the official code (its active masks)
-        counted = advantages if "active" not in flat else advantages[flat["active"] > 0]
-        scale = counted.std().clamp_min(std_floor) + 1e-5
-        flat["advantages"] = (advantages - counted.mean()) / scale
-        return flat
+        return dataclasses.replace(trajectory, advantages=advantages, returns=advantages + values)

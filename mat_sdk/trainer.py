@@ -30,7 +30,7 @@ from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, Policy, build_policy
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
-from mat_sdk.rollout import RolloutCollector
+from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
 
 
@@ -173,14 +173,14 @@ class Trainer:
         try:
             while self.progress["steps"] < total_steps:
                 start = time.perf_counter()
-                trajectories, finished = self.rollout()
+                trajectory = self.rollout()
                 rolled = time.perf_counter()
-                losses = self._update(trajectories)
+                losses = self._update(trajectory)
                 updated = time.perf_counter()
                 self.progress["steps"] += per_update
                 self.progress["updates"] += 1
                 metrics = update_metrics(
-                    self.progress, finished, trajectories["rewards"], losses, per_update,
+                    self.progress, trajectory.finished, trajectory.rewards, losses, per_update,
                     rollout_s=rolled - start, update_s=updated - rolled,
                 )  # fmt: skip
                 if log:
@@ -206,20 +206,19 @@ class Trainer:
         return done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
 
     @torch.no_grad()
-    def rollout(self) -> tuple[dict[str, torch.Tensor], list[float]]:
+    def rollout(self) -> Trajectory:
         """One update's data: `rollout_length` steps on every env (here or on Ray workers),
-        with advantages; and the returns of the episodes that finished."""
+        with advantages and returns."""
         if self._remote is not None:
-            trajectories = self._remote.collect(self)
-            self.obs_norm.update(trajectories.pop("raw_obs"))
+            trajectory = self._remote.collect(self)
+            self.obs_norm.update(trajectory.raw_obs)
         else:
-            trajectories = self.collector.collect(update_norm=True)
-        finished = trajectories.pop("finished")
-        return self.collector.advantages(trajectories, self.value_norm), finished
+            trajectory = self.collector.collect(update_norm=True)
+        return self.collector.advantages(trajectory, self.value_norm)
 
-    def _update(self, trajectories: dict[str, torch.Tensor]) -> dict[str, float]:
+    def _update(self, trajectory: Trajectory) -> dict[str, float]:
         cfg = self.config
-        batch = RolloutCollector.rows(trajectories, cfg.advantage_std_floor)
+        batch = trajectory.rows(cfg.advantage_std_floor)
         self.gradients.share(batch)
         size = batch["obs"].shape[0]
         minibatch = size // cfg.num_minibatches

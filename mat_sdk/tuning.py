@@ -30,7 +30,6 @@ from mat_sdk.config import TrainConfig
 from mat_sdk.files import write_text_atomic
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
-from mat_sdk.rollout import RolloutCollector
 from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
 
@@ -153,8 +152,7 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
     measurements = None
     try:
         trainer.config.check_batching()  # as the run would refuse it, before any work
-        trajectories, _ = trainer.rollout()
-        batch = RolloutCollector.rows(trajectories, trainer.config.advantage_std_floor)
+        batch = trainer.rollout().rows(trainer.config.advantage_std_floor)
         rows = batch["obs"].shape[0]
         size = rows // trainer.config.num_minibatches
         minibatches = [torch.arange(i * size, (i + 1) * size)

@@ -20,7 +20,6 @@ from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs, recipes
 from mat_sdk.ppo import LossCoefficients, minibatch_loss, ppo_loss
-from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
 recipes.with_examples()
@@ -174,11 +173,11 @@ def masked_in_infos(seed=None):
 def test_action_masks_reach_the_policy(factory):
     spec = envs.from_pettingzoo(factory)
     with Trainer(spec, "mat", num_envs=4, rollout_length=5, num_minibatches=1) as trainer:
-        trajectories, _ = trainer.rollout()
-        rows = RolloutCollector.rows(trajectories)
+        trajectory = trainer.rollout()
+        rows = trajectory.rows()
         log_prob, _, _ = trainer.policy.evaluate(rows["obs"], rows["actions"], rows["available"])
-    chosen = trajectories["actions"][..., 0]  # [T, E, n]
-    active = trajectories["active"][..., 0] > 0
+    chosen = trajectory.actions[..., 0]  # [T, E, n]
+    active = trajectory.active[..., 0] > 0
     last_choice = torch.tensor([1.0, 3.0, 2.0]).expand_as(chosen)
     assert torch.equal(chosen[active], last_choice[active])  # never a masked-out choice
     assert torch.all(log_prob[rows["active"][..., 0] > 0] == 0)  # the loss sees one choice
@@ -207,8 +206,7 @@ def test_a_custom_robot_steps_in_env_worker_processes():
 
 def _uneven_batch():
     with Trainer(envs.from_pettingzoo(uneven), "mat", num_envs=4, rollout_length=10) as trainer:
-        trajectories, _ = trainer.rollout()
-        return trainer, RolloutCollector.rows(trajectories)
+        return trainer, trainer.rollout().rows()
 
 
 def test_padded_dimensions_and_gone_agents_get_exactly_zero_gradient():
@@ -398,10 +396,10 @@ def test_pettingzoo_actions_train_end_to_end(env_id):
     32,000 and 96,000 steps, 40 s and more)."""
     with Trainer(env_id, "mat", num_envs=4, rollout_length=25) as trainer:
         trainer.learn(200, progress_bar=False)
-        trajectories, _ = trainer.rollout()
+        trajectory = trainer.rollout()
         returns = trainer.evaluate(2)
-    assert "action_dims" not in trajectories and torch.all(trajectories["active"] == 1)
-    assert ("available" in trajectories) == (trainer.env.action_type == "discrete")
+    assert trajectory.action_dims is None and torch.all(trajectory.active == 1)
+    assert (trajectory.available is not None) == (trainer.env.action_type == "discrete")
     assert len(returns) == 2 and all(np.isfinite(returns))
 
 

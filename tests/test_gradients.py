@@ -5,7 +5,6 @@ import pytest
 import torch
 from helpers import TINY
 
-from mat_sdk.rollout import RolloutCollector
 from mat_sdk.trainer import Trainer
 
 SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
@@ -13,8 +12,7 @@ SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
 
 def shared_rows(trainer: Trainer) -> dict[str, torch.Tensor]:
     """A rollout's batch as rows, shared with the trainer's update workers."""
-    trajectories, _ = trainer.rollout()
-    batch = RolloutCollector.rows(trajectories)
+    batch = trainer.rollout().rows()
     trainer.gradients.share(batch)
     return batch
 

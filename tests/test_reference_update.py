@@ -15,12 +15,9 @@ def test_losses_and_gradients_equal_the_official_style_reference(update_workers)
     with Trainer(
         "cheetah-6x1", "mat", num_envs=4, rollout_length=25, update_workers=update_workers
     ) as trainer:
-        batch, _ = trainer.rollout()
-        mb = {
-            k: v.flatten(0, 1)[:50]
-            for k, v in batch.items()
-            if k not in ("rewards", "terminated", "done")
-        }
+        trajectory = trainer.rollout()
+        names = ("obs", "actions", "log_probs", "values", "advantages", "returns")
+        mb = {name: getattr(trajectory, name).flatten(0, 1)[:50] for name in names}
         with torch.no_grad():  # trained-like weights: unit-gain layers and a moved policy
             for p in trainer.policy.parameters():
                 p.add_(0.05 * torch.randn_like(p))

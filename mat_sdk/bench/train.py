@@ -16,7 +16,6 @@ import torch
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.processes import usable_cores
-from mat_sdk.rollout import RolloutCollector
 from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
 from mat_sdk.tuning import twin
@@ -71,9 +70,9 @@ def main(
         start = time.perf_counter()
         rollouts = 2
         for _ in range(rollouts):
-            trajectories, _ = trainer.rollout()
+            trajectory = trainer.rollout()
         rollout_s = (time.perf_counter() - start) / rollouts
-        batch = RolloutCollector.rows(trajectories)
+        batch = trajectory.rows()
         size = batch["obs"].shape[0] // 40
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
         cpu = trainer.device.type == "cpu"
