@@ -35,7 +35,7 @@ from mat_export.target import check_target, staging
 from mat_sdk import checkpoint, envs, files
 from mat_sdk.control_graph import OPSET as DECODE_OPSET
 from mat_sdk.control_graph import build_decode
-from mat_sdk.model import MAT, ModelConfig
+from mat_sdk.model import MAT, ModelConfig, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 
 OPSET = 20  # encoder.onnx and decoder_step.onnx; decode*.onnx: DECODE_OPSET (24, Attention)
@@ -134,12 +134,10 @@ def _check_env(payload: dict, cfg: ModelConfig):
             f"the checkpoint was trained on env {env_id!r}, which cannot be made here ({error}); "
             "no bundle written"
         ) from None
-    if (team.obs_dim, team.action_size) != (cfg.obs_dim, cfg.action_size):
-        raise ExportError(
-            f"env {env_id} gives observations of size {team.obs_dim} and actions of size "
-            f"{team.action_size}, but the checkpoint's model takes {cfg.obs_dim} and "
-            f"{cfg.action_size}; no bundle written"
-        )
+    try:
+        check_fits(cfg, team, env_id)
+    except ValueError as error:
+        raise ExportError(f"{error}; no bundle written") from None
     return team
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from mat_sdk import checkpoint, envs
-from mat_sdk.model import Policy
+from mat_sdk.model import Policy, check_fits
 from mat_sdk.normalization import RunningMeanStd
 
 VIDEO_SUFFIXES = (".mp4", ".gif")  # what write_video's imageio writers produce
@@ -78,27 +78,6 @@ class LoadedPolicy:
             tensor, available, deterministic=deterministic, generator=generator
         )
         return actions.cpu().numpy()
-
-
-def check_compatible(policy: Policy, vec: Any, env_id: str) -> None:
-    """Refuse an env the policy cannot serve, saying why."""
-    cfg = policy.cfg
-    if vec.obs_dim != cfg.obs_dim:
-        raise ValueError(
-            f"{env_id} gives observations of size {vec.obs_dim}, but the policy was trained on "
-            f"size {cfg.obs_dim}; the robots differ (or one-hot agent ids are on in one and off in "
-            "the other)"
-        )
-    if vec.action_type != cfg.action_type or vec.action_size != cfg.action_size:
-        raise ValueError(
-            f"{env_id} has {vec.action_type} actions of size {vec.action_size}, the policy "
-            f"{cfg.action_type} of size {cfg.action_size}"
-        )
-    if cfg.algo == "mappo" and vec.n_agents != cfg.n_agents:
-        raise ValueError(
-            f"a MAPPO policy's centralised critic is tied to {cfg.n_agents} agents; "
-            f"{env_id} has {vec.n_agents}"
-        )
 
 
 @dataclass
@@ -173,7 +152,7 @@ def evaluate_episodes(
         raise ValueError(f"video {video}: name a {' / '.join(VIDEO_SUFFIXES)} file")
     generator = torch.Generator().manual_seed(seed)
     with envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec:
-        check_compatible(loaded.policy, vec, env_id)
+        check_fits(loaded.policy.cfg, vec, env_id)
         obs = vec.reset(seed=seed)
         returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)
         lengths, ended = np.zeros(episodes, dtype=np.int64), np.zeros(episodes, dtype=bool)

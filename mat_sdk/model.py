@@ -491,3 +491,26 @@ class MAPPO(Decentralised):
 
 def build_policy(cfg: ModelConfig) -> Policy:
     return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO}[cfg.algo](cfg)
+
+
+def check_fits(cfg: ModelConfig, env, env_id: str) -> None:
+    """Refuse an env (a team or vectorised envs) that a policy of `cfg` cannot act on, saying
+    why: its observation size, its action type and size, and for MAPPO, whose centralised
+    critic reads every agent at once, its agent count. The one fit check: training on several
+    envs, evaluating, fine-tuning and exporting all ask it."""
+    if env.obs_dim != cfg.obs_dim:
+        raise ValueError(
+            f"{env_id} gives observations of size {env.obs_dim}, but the policy takes size "
+            f"{cfg.obs_dim}; the robots differ (or one-hot agent ids are on in one and off in "
+            "the other; ids of one family share a size: `mat envs` marks families)"
+        )
+    if env.action_type != cfg.action_type or env.action_size != cfg.action_size:
+        raise ValueError(
+            f"{env_id} has {env.action_type} actions of size {env.action_size}, the policy "
+            f"{cfg.action_type} of size {cfg.action_size}"
+        )
+    if cfg.algo == "mappo" and env.n_agents != cfg.n_agents:
+        raise ValueError(
+            f"MAPPO's centralised critic is tied to {cfg.n_agents} agents; {env_id} has "
+            f"{env.n_agents}"
+        )

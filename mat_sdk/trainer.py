@@ -28,30 +28,10 @@ from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import ModelConfig, Policy, build_policy
+from mat_sdk.model import ModelConfig, Policy, build_policy, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
-
-
-def check_family(vecs: list, algo: str) -> None:
-    """Refuse envs that one policy cannot train on together, saying why: they must share
-    observation size and action space (a family), and MAPPO its agent count."""
-    first = vecs[0]
-    for vec in vecs[1:]:
-        shape = (vec.obs_dim, vec.action_type, vec.action_size)
-        if shape != (first.obs_dim, first.action_type, first.action_size):
-            raise ValueError(
-                f"{vec.env_id} and {first.env_id} cannot train one policy: observation sizes "
-                f"{vec.obs_dim} and {first.obs_dim}, {vec.action_type} actions of size "
-                f"{vec.action_size} and {first.action_size}; give ids of one family "
-                "(`mat envs` marks families)"
-            )
-        if algo == "mappo" and vec.n_agents != first.n_agents:
-            raise ValueError(
-                f"MAPPO's centralised critic is tied to one agent count; {vec.env_id} has "
-                f"{vec.n_agents} agents, {first.env_id} {first.n_agents}"
-            )
 
 
 class TrainingDiverged(RuntimeError):
@@ -99,7 +79,9 @@ class Trainer:
         try:
             for env_id in cfg.env_ids[len(self.envs) :]:
                 self.envs.append(cfg.make_envs(env_id=env_id))
-            check_family(self.envs, cfg.algo)
+            first = cfg.model_config(self.envs[0])  # one policy must fit every env
+            for vec in self.envs[1:]:
+                check_fits(first, vec, vec.env_id)
         except BaseException:
             for env in self.envs:
                 env.close()
@@ -326,8 +308,6 @@ class Trainer:
         Without `env`, a `module:function` id the checkpoint records is imported only with
         `trust_env_code=True`.
         """
-        from mat_sdk.evaluation import check_compatible
-
         payload = checkpoint.load(checkpoint_path)
         train = dict(payload["config"]["train"])
         model = payload["config"]["model"]
@@ -343,7 +323,7 @@ class Trainer:
         env = trained_env if env is None else envs.id_of(env)
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
-            check_compatible(build_policy(ModelConfig.from_dict(model)), trainer.env, env)
+            check_fits(ModelConfig.from_dict(model), trainer.env, env)
             checkpoint.restore_pretrained(trainer, payload, checkpoint_path, not reset_optimizer)
         except BaseException:
             trainer.close()
