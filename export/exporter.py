@@ -59,7 +59,7 @@ def export(
     out_dir, checkpoint_path = Path(out_dir), checkpoint.locate(checkpoint_path)  # or zoo:NAME
     check_target(out_dir, force, checkpoint_path)
     payload = checkpoint.load(checkpoint_path)
-    envs.check_trusted([payload["config"]["env"]["id"]], trust_env_code, str(checkpoint_path))
+    envs.check_trusted([checkpoint.env_id(payload)], trust_env_code, str(checkpoint_path))
     built = staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
         with files.writing(out_dir):
@@ -126,7 +126,7 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
 def _check_env(payload: dict, cfg: ModelConfig):
     """The bundle names the robot it drives: that env must exist and fit the model. Returns
     the team, for its wiring."""
-    env_id, train = payload["config"]["env"]["id"], payload["config"]["train"]
+    env_id, train = checkpoint.env_id(payload), payload["config"]["train"]
     try:
         team = envs.make_team(env_id, train.get("faults") or {}, **(train.get("env_options") or {}))
     except (ValueError, TypeError) as error:

@@ -65,7 +65,7 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "trained_counts": env.get("counts") or [cfg.n_agents],  # every count trained on
             "names": env.get("agents"),
         },
-        "env_id": env.get("id"),  # with the faults and options the policy was trained under
+        "env_id": train["env"],  # with the faults and options the policy was trained under
         "env_faults": dict(train.get("faults") or {}),
         "env_options": dict(train.get("env_options") or {}),
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]

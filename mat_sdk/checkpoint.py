@@ -37,20 +37,21 @@ class CheckpointError(ValueError):
     """The file is missing, not a MAT checkpoint, or of a version this SDK cannot read."""
 
 
-def training_payload(trainer) -> dict[str, Any]:
-    """A training run as plain containers and tensors: what `restore_training` puts back.
-
-    `trainer` is a `mat_sdk.trainer.Trainer` (its config, model config, envs, policy, flat
-    parameters and optimizer, progress, rollout collector and value normaliser)."""
-    collector = trainer.collectors[0]  # the others share its normaliser and generators
+def training_payload(
+    config, model_config, policy, optimizer_state, progress, collectors, value_norm
+) -> dict[str, Any]:
+    """A training run as plain containers and tensors, what `restore_training` puts back: its
+    `TrainConfig` and `ModelConfig`, the policy, the optimizer's per-parameter state,
+    progress, the rollout collectors (one per env id; the first's normaliser and generators
+    are shared) and the value normaliser."""
+    collector = collectors[0]
     env = collector.env
     return {
         "config": {
-            "train": asdict(trainer.config),
-            "model": trainer.model_config.to_dict(),
+            "train": asdict(config),  # the env id is `train.env`: stored once
+            "model": model_config.to_dict(),
             "env": {
-                "id": trainer.config.env,
-                "counts": [c.env.n_agents for c in trainer.collectors],  # per env id
+                "counts": [c.env.n_agents for c in collectors],  # per env id
                 "agents": list(env.agents),
                 "obs_dim": env.obs_dim,
                 "action_type": env.action_type,
@@ -60,24 +61,29 @@ def training_payload(trainer) -> dict[str, Any]:
                 "action_high": 1.0,
             },
         },
-        "model": {k: v.cpu() for k, v in trainer.policy.state_dict().items()},
-        "optimizer": trainer.params.per_parameter_state(trainer.optimizer.state_dict()),
-        "progress": dict(trainer.progress),
+        "model": {k: v.cpu() for k, v in policy.state_dict().items()},
+        "optimizer": optimizer_state,
+        "progress": dict(progress),
         "rng": {
             "torch": collector.generator.get_state().cpu(),
             "shuffle": collector.shuffle_generator.get_state(),
             "device": collector.device.type,  # which kind of generator "torch" is
         },
         "obs_norm": collector.obs_norm.state_dict(),
-        "value_norm": trainer.value_norm.state_dict(),
+        "value_norm": value_norm.state_dict(),
         "envs": to_tensors(env.get_state()),
         "next_obs": torch.from_numpy(collector.next_obs.copy()),
         # the envs of `more_envs` (other agent counts), in their order
         "more_envs": [
             {"envs": to_tensors(c.env.get_state()), "next_obs": torch.from_numpy(c.next_obs.copy())}
-            for c in trainer.collectors[1:]
+            for c in collectors[1:]
         ],
     }
+
+
+def env_id(payload: dict[str, Any]) -> str:
+    """The id of the env a checkpoint trained on (`config.train.env`)."""
+    return payload["config"]["train"]["env"]
 
 
 # What a resume may change: how the run is computed, not what is trained.
@@ -110,24 +116,28 @@ def training_options(
 
 
 def restore_pretrained(
-    trainer, payload: dict[str, Any], path: str | os.PathLike, keep_optimizer: bool
-) -> None:
+    payload: dict[str, Any], path, *, policy, obs_norm, value_norm, params=None, optimizer=None,
+    lr: float | None = None,
+) -> None:  # fmt: skip
     """A pre-trained policy into a new run (few-shot): its weights and both normalisers, and
-    with `keep_optimizer` its Adam moments (at the new run's learning rate)."""
-    load_weights(trainer.policy, payload["model"], path)
-    trainer.obs_norm.load_state_dict(payload["obs_norm"])
-    trainer.value_norm.load_state_dict(payload["value_norm"])
-    if keep_optimizer:
-        trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
-        for group in trainer.optimizer.param_groups[:1]:
-            group["lr"] = trainer.config.lr
+    given `params` and `optimizer`, its Adam moments too (at the new run's `lr`)."""
+    load_weights(policy, payload["model"], path)
+    obs_norm.load_state_dict(payload["obs_norm"])
+    value_norm.load_state_dict(payload["value_norm"])
+    if optimizer is not None:
+        optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
+        for group in optimizer.param_groups[:1]:
+            group["lr"] = lr
 
 
-def restore_training(trainer, payload: dict[str, Any], path: str | os.PathLike) -> None:
-    """Put a `training_payload` back into a trainer built from its config, or raise
+def restore_training(
+    payload: dict[str, Any], path, *, policy, params, optimizer, collectors, value_norm, seed: int
+) -> dict[str, int]:
+    """Put a `training_payload` back into a run built from its config (its policy, flat
+    parameters and optimizer, collectors and value normaliser); -> its progress. Or raise
     `CheckpointError` saying the file at `path` cannot be resumed from."""
     try:
-        _restore(trainer, payload)
+        return _restore(payload, policy, params, optimizer, collectors, value_norm, seed)
     except CheckpointError:
         raise
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
@@ -137,13 +147,13 @@ def restore_training(trainer, payload: dict[str, Any], path: str | os.PathLike) 
         ) from None
 
 
-def _restore(trainer, payload: dict[str, Any]) -> None:
-    collector = trainer.collectors[0]
-    load_weights(trainer.policy, payload["model"], "the checkpoint")
+def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -> dict[str, int]:
+    collector = collectors[0]
+    load_weights(policy, payload["model"], "the checkpoint")
     collector.obs_norm.load_state_dict(payload["obs_norm"])
-    trainer.value_norm.load_state_dict(payload["value_norm"])
-    trainer.optimizer.load_state_dict(trainer.params.flat_state(payload["optimizer"]))
-    trainer.progress = dict(payload["progress"])
+    value_norm.load_state_dict(payload["value_norm"])
+    optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
+    progress = dict(payload["progress"])
     saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
     if saved_on == collector.device.type:
         collector.generator.set_state(payload["rng"]["torch"])
@@ -154,18 +164,19 @@ def _restore(trainer, payload: dict[str, Any]) -> None:
             "exactly as it would have on the same device",
             stacklevel=4,
         )
-        collector.generator.manual_seed(trainer.config.seed + trainer.progress["updates"])
+        collector.generator.manual_seed(seed + progress["updates"])
     collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
     more = payload.get("more_envs", [])  # checkpoints before 2026-12-02: one env only
     saved = [{"envs": payload["envs"], "next_obs": payload["next_obs"]}, *more]
-    if len(saved) != len(trainer.collectors):
+    if len(saved) != len(collectors):
         raise CheckpointError(
             f"the checkpoint holds the states of {len(saved)} env ids, the run trains on "
-            f"{len(trainer.collectors)}"
+            f"{len(collectors)}"
         )
-    for own, state in zip(trainer.collectors, saved, strict=True):
+    for own, state in zip(collectors, saved, strict=True):
         own.env.set_state(to_arrays(state["envs"]))
         own.next_obs = state["next_obs"].numpy().copy()
+    return progress
 
 
 def to_tensors(value: Any) -> Any:
@@ -295,10 +306,10 @@ def _check_structure(path: Path, payload: dict[str, Any]) -> None:
         ModelConfig.from_dict(config["model"])
     except ValueError as error:
         fail("config.model", f"is invalid ({error})")
-    if not isinstance(config["env"].get("id"), str):
-        fail("config.env.id", f"must be a string, got {config['env'].get('id')!r}")
-    if config["env"]["id"] != config["train"].get("env"):
-        fail("config.env.id", f"differs from config.train.env ({config['train'].get('env')!r})")
+    if not isinstance(config["train"].get("env"), str):
+        fail("config.train.env", f"must be a string, got {config['train'].get('env')!r}")
+    if "id" in config["env"] and config["env"]["id"] != config["train"]["env"]:  # before 2026-12-03
+        fail("config.env.id", f"differs from config.train.env ({config['train']['env']!r})")
     _check_train_config(config["train"], fail)
     weights = payload.get("model")
     if not isinstance(weights, dict) or not all(

@@ -247,7 +247,11 @@ class Trainer:
     # ------------------------------------------------------------ checkpoints
     def state_payload(self) -> dict[str, Any]:
         """Everything `Trainer.load` needs to continue exactly (`checkpoint.training_payload`)."""
-        return checkpoint.training_payload(self)
+        return checkpoint.training_payload(
+            self.config, self.model_config, self.policy,
+            self.params.per_parameter_state(self.optimizer.state_dict()), self.progress,
+            self.collectors, self.value_norm,
+        )  # fmt: skip
 
     def save(self, path: str | Path) -> Path:
         """Write a checkpoint atomically (temp file + rename)."""
@@ -277,7 +281,11 @@ class Trainer:
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
         trainer.resumed_with = changed
         try:
-            checkpoint.restore_training(trainer, payload, path)
+            trainer.progress = checkpoint.restore_training(
+                payload, path, policy=trainer.policy, params=trainer.params,
+                optimizer=trainer.optimizer, collectors=trainer.collectors,
+                value_norm=trainer.value_norm, seed=trainer.config.seed,
+            )  # fmt: skip
         except BaseException:
             trainer.close()
             raise
@@ -324,7 +332,15 @@ class Trainer:
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
             check_fits(ModelConfig.from_dict(model), trainer.env, env)
-            checkpoint.restore_pretrained(trainer, payload, checkpoint_path, not reset_optimizer)
+            keep = (
+                {}
+                if reset_optimizer
+                else {"params": trainer.params, "optimizer": trainer.optimizer}
+            )
+            checkpoint.restore_pretrained(
+                payload, checkpoint_path, policy=trainer.policy, obs_norm=trainer.obs_norm,
+                value_norm=trainer.value_norm, lr=trainer.config.lr, **keep,
+            )  # fmt: skip
         except BaseException:
             trainer.close()
             raise

@@ -41,7 +41,8 @@ EDITS = {
         lambda p: p["config"]["model"].update(n_embd="64"),
         "model n_embd must be an integer >= 1, got '64'",
     ),
-    "no env id": (lambda p: p["config"]["env"].pop("id"), "config.env.id must be a string"),
+    "no env id": (lambda p: p["config"]["train"].pop("env"), "config.train.env must be a string"),
+    "a list env id": (lambda p: p["config"]["train"].update(env=["x"]), "config.train.env must be"),
     "no normaliser": (lambda p: p.pop("obs_norm"), "obs_norm must hold the tensors mean, var"),
     "bad progress": (lambda p: p.update(progress={"steps": -1}), "progress must hold"),
     "None fault": (  # a name MuJoCo's lookup would crash on
@@ -65,8 +66,8 @@ EDITS = {
         "env_options cannot set seed",
     ),
     "two env ids": (
-        lambda p: p["config"]["train"].update(env="coordination-4"),
-        r"config.env.id differs from config.train.env \('coordination-4'\)",
+        lambda p: p["config"]["env"].update(id="coordination-4"),  # as written before 2026-12-03
+        r"config.env.id differs from config.train.env \('coordination-3'\)",
     ),
     "unknown field": (
         lambda p: p["config"]["train"].update(colour="red"),

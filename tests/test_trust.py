@@ -64,7 +64,7 @@ def planted(tmp_path_factory):
     manifest["env_id"] = HOSTILE
     (root / "bundle" / "manifest.json").write_text(json.dumps(manifest))
     payload = torch.load(honest, weights_only=True)
-    payload["config"]["train"]["env"] = payload["config"]["env"]["id"] = HOSTILE
+    payload["config"]["train"]["env"] = HOSTILE
     checkpoint.save_atomic(payload, root / "hostile.pt")
     return root
 
@@ -173,7 +173,7 @@ def test_even_a_trusted_id_must_name_a_plain_function_outside_the_standard_libra
 
 def test_a_stdlib_id_in_a_checkpoint_is_refused_even_when_trusted(planted, tmp_path):
     payload = torch.load(planted / "honest.pt", weights_only=True)
-    payload["config"]["train"]["env"] = payload["config"]["env"]["id"] = "os:abort"
+    payload["config"]["train"]["env"] = "os:abort"
     checkpoint.save_atomic(payload, tmp_path / "abort.pt")
     run = _run(["eval", str(tmp_path / "abort.pt"), "--trust-env-code"], tmp_path)
     assert run.returncode == 1 and "standard library module 'os'" in run.stderr, run.stderr
