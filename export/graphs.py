@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, Policy
+from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, PolicyNetwork
 from mat_sdk.normalization import RunningMeanStd
 
 
@@ -58,7 +58,7 @@ class ValueScale(nn.Module):
 class EncoderGraph(nn.Module):
     """obs [B, n, obs_dim] -> rep [B, n, C] (MAT) or normalised obs (decentralised), values."""
 
-    def __init__(self, policy: Policy, normalizer: ObsNormalizer, value_scale: ValueScale):
+    def __init__(self, policy: PolicyNetwork, normalizer: ObsNormalizer, value_scale: ValueScale):
         super().__init__()
         self.policy, self.normalizer, self.value_scale = policy, normalizer, value_scale
 
@@ -98,7 +98,7 @@ class MATStepGraph(nn.Module):
 class DecentralisedStepGraph(nn.Module):
     """MAT-Dec / MAPPO: every agent's action parameters at once from normalised obs; no cache."""
 
-    def __init__(self, policy: Policy):
+    def __init__(self, policy: PolicyNetwork):
         super().__init__()
         self.policy = policy
         self.discrete = policy.cfg.action_type == "discrete"

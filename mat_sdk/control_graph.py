@@ -33,7 +33,7 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, Policy
+from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, PolicyNetwork
 
 OPSET = 24  # `Attention` with a KV cache
 LOOP_STEPS = (1, 8)  # agent steps per iteration of the any-count graph's `Loop`s
@@ -119,7 +119,7 @@ class GraphBuilder:
         return self.op("Split", fused, outputs=len(parts), axis=-1, num_outputs=len(parts))
 
 
-def _weights(policy: Policy) -> dict[str, np.ndarray]:
+def _weights(policy: PolicyNetwork) -> dict[str, np.ndarray]:
     return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in policy.state_dict().items()}
 
 
@@ -128,7 +128,7 @@ def _value(name: str, shape) -> onnx.ValueInfoProto:
 
 
 def build_decode(
-    policy: Policy,
+    policy: PolicyNetwork,
     obs_mean: np.ndarray,
     obs_scale: np.ndarray,
     obs_clip,

@@ -11,23 +11,23 @@ import numpy as np
 import torch
 
 from mat_sdk import checkpoint, envs
-from mat_sdk.model import Policy, check_fits
+from mat_sdk.model import PolicyNetwork, check_fits
 from mat_sdk.normalization import RunningMeanStd
 
 VIDEO_SUFFIXES = (".mp4", ".gif")  # what write_video's imageio writers produce
 
 
 @dataclass
-class LoadedPolicy:
+class CheckpointPolicy:
     """A checkpoint's policy with the observation normaliser it was trained with."""
 
-    policy: Policy
+    policy: PolicyNetwork
     obs_norm: RunningMeanStd | None
     config: dict[str, Any]
     source: str = "the checkpoint"  # where the policy came from, for messages
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path) -> LoadedPolicy:
+    def from_checkpoint(cls, path: str | Path) -> CheckpointPolicy:
         payload = checkpoint.load(path)
         policy, norm = checkpoint.restore_policy(payload, path)
         return cls(policy, norm, payload["config"], str(path))
@@ -107,7 +107,7 @@ class Episodes:
 
 
 def evaluate(
-    loaded: LoadedPolicy,
+    loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
     faults: Mapping[str, str] | None = None,
@@ -125,7 +125,7 @@ def evaluate(
 
 
 def evaluate_episodes(
-    loaded: LoadedPolicy,
+    loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
     faults: Mapping[str, str] | None = None,

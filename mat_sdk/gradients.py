@@ -22,7 +22,7 @@ from torch import Tensor
 
 from mat_sdk import processes
 from mat_sdk.flat_params import FlatParameters, views
-from mat_sdk.model import Policy
+from mat_sdk.model import PolicyNetwork
 from mat_sdk.ppo import LossCoefficients, LossTerms, minibatch_loss
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
@@ -61,7 +61,9 @@ class _Share:
     """A worker's side: on each step, the gradient of its share of the current minibatch,
     accumulated straight into shared buffers laid out like the caller's flat gradients."""
 
-    def __init__(self, policy: Policy, config: TrainConfig, compile_mode, rank, parts, shared):
+    def __init__(
+        self, policy: PolicyNetwork, config: TrainConfig, compile_mode, rank, parts, shared
+    ):
         config.configure_torch()
         self.policy, self.rank, self.parts = policy, rank, parts
         self.coefficients = LossCoefficients.of(config)
@@ -113,7 +115,7 @@ class MinibatchGradients:
 
     def __init__(
         self,
-        policy: Policy,
+        policy: PolicyNetwork,
         params: FlatParameters,
         config: TrainConfig,
         workers: int = 0,

@@ -316,7 +316,7 @@ class ActionDistribution:
         return dist.mean + dist.stddev * noise
 
 
-class Policy(nn.Module):
+class PolicyNetwork(nn.Module):
     """The interface the trainer uses: teacher-forced `evaluate`, sampling `act`."""
 
     def __init__(self, cfg: ModelConfig):
@@ -337,7 +337,7 @@ class Policy(nn.Module):
         """Teacher-forced: (mean or logits [B, n, A], values [B, n, 1])."""
         raise NotImplementedError
 
-    def evaluate(self, obs: Tensor, actions: Tensor, available: Tensor | None = None):
+    def evaluate_actions(self, obs: Tensor, actions: Tensor, available: Tensor | None = None):
         """log-probs and entropies [B, n, A or 1] and values [B, n, 1] of taken actions."""
         params, values = self.action_params(obs, actions)
         dist = self.dist.make(params, self.std(), available)
@@ -356,7 +356,7 @@ class Policy(nn.Module):
         raise NotImplementedError
 
 
-class MAT(Policy):
+class MAT(PolicyNetwork):
     def __init__(self, cfg: ModelConfig):
         super().__init__(cfg)
         self.encoder = Encoder(cfg)
@@ -439,7 +439,7 @@ def actor_mlp(obs_dim: int, n_embd: int, out: int) -> nn.Sequential:
     )
 
 
-class Decentralised(Policy):
+class Decentralised(PolicyNetwork):
     """Agents act independently from their own observations (MAT-Dec and MAPPO)."""
 
     def actor(self, obs: Tensor) -> Tensor:
@@ -489,7 +489,7 @@ class MAPPO(Decentralised):
         return self.critic(torch.cat((joint, obs), dim=-1))
 
 
-def build_policy(cfg: ModelConfig) -> Policy:
+def build_policy(cfg: ModelConfig) -> PolicyNetwork:
     return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO}[cfg.algo](cfg)
 
 

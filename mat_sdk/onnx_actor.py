@@ -16,11 +16,11 @@ import onnxruntime as ort
 import torch
 
 from mat_runtime.policy import session
-from mat_sdk.model import Policy
+from mat_sdk.model import PolicyNetwork
 
 
 class OnnxActor:
-    def __init__(self, policy: Policy):
+    def __init__(self, policy: PolicyNetwork):
         self.policy = policy
         self.session: ort.InferenceSession | None = None
         self.discrete = policy.cfg.action_type == "discrete"
@@ -42,7 +42,7 @@ class OnnxActor:
         deterministic: bool = False,
         available: torch.Tensor | None = None,
     ):
-        """Like `Policy.act` on normalised obs [B, n, D]: actions, log-probs, values."""
+        """Like `PolicyNetwork.act` on normalised obs [B, n, D]: actions, log-probs, values."""
         shape = (*obs.shape[:2], self.policy.cfg.action_size)
         noise = torch.zeros(shape) if deterministic else self.policy.dist.noise(shape, generator)
         feed = {"obs": obs.cpu().numpy(), "noise": noise.numpy()}

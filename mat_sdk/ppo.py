@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mat_sdk.model import Policy, in_agent_order
+from mat_sdk.model import PolicyNetwork, in_agent_order
 
 
 def gae(
@@ -127,7 +127,7 @@ class LossCoefficients:
 
 
 def minibatch_loss(
-    policy: Policy, mb: dict[str, Tensor], targets: Tensor, coefficients: LossCoefficients
+    policy: PolicyNetwork, mb: dict[str, Tensor], targets: Tensor, coefficients: LossCoefficients
 ) -> LossTerms:
     """The PPO loss terms of one minibatch; `targets` are its normalised returns.
 
@@ -137,7 +137,7 @@ def minibatch_loss(
     inputs = [mb["obs"], mb["actions"]]
     if "available" in mb:
         inputs.append(mb["available"])
-    log_prob, entropy, values = in_agent_order(mb.get("order"), policy.evaluate, *inputs)
+    log_prob, entropy, values = in_agent_order(mb.get("order"), policy.evaluate_actions, *inputs)
     return ppo_loss(
         log_prob,
         mb["log_probs"],

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from mat_sdk.evaluation import LoadedPolicy, evaluate
+from mat_sdk.evaluation import CheckpointPolicy, evaluate
 from mat_sdk.files import write_text_atomic
 
 EVALUATIONS_NAME = "evaluations.json"
@@ -87,7 +87,7 @@ class EvaluationLog:
             return run["absolute_metrics"]["return"]
         if not (self.out_dir / BEST_NAME).exists():
             return None
-        best = LoadedPolicy.from_checkpoint(self.out_dir / BEST_NAME)
+        best = CheckpointPolicy.from_checkpoint(self.out_dir / BEST_NAME)
         # this run's own best policy, on the env the run was given
         returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, trust_env_code=True)
         run["absolute_metrics"] = {"return": returns}

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import VecTeam
-from mat_sdk.model import Policy, in_agent_order
+from mat_sdk.model import PolicyNetwork, in_agent_order
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.ppo import gae
 
@@ -97,7 +97,7 @@ class RolloutCollector:
     def __init__(
         self,
         env: VecTeam,
-        policy: Policy,
+        policy: PolicyNetwork,
         config: TrainConfig,
         device: torch.device | str = "cpu",
         seed: int | None = None,

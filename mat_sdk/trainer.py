@@ -28,7 +28,7 @@ from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import ModelConfig, Policy, build_policy, check_fits
+from mat_sdk.model import ModelConfig, PolicyNetwork, build_policy, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
@@ -88,7 +88,7 @@ class Trainer:
             raise
         self.env = self.envs[0]  # the shapes and names: the first env's
         self.model_config = cfg.model_config(self.env)
-        self.policy: Policy = build_policy(self.model_config).to(self.device)
+        self.policy: PolicyNetwork = build_policy(self.model_config).to(self.device)
         self.build_optimizer()
         self.gradients = MinibatchGradients(
             self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
@@ -121,7 +121,7 @@ class Trainer:
         return self.collector.obs_norm
 
     def predict(self, obs, deterministic: bool = True, available=None):
-        """Actions for raw observations (`LoadedPolicy.predict`): an array [n, obs_dim] or
+        """Actions for raw observations (`CheckpointPolicy.predict`): an array [n, obs_dim] or
         [B, n, obs_dim] -> an array, or a PettingZoo obs dict -> an action dict. `available`
         [.., n, choices] (discrete) masks the choices an agent may not take."""
         generator = self.collector.generator
@@ -200,9 +200,9 @@ class Trainer:
 
     def _update(self, trajectory: Trajectory) -> dict[str, float]:
         cfg = self.config
-        batch = trajectory.rows(cfg.advantage_std_floor)
-        self.gradients.share(batch)
-        size = batch["obs"].shape[0]
+        rows = trajectory.rows(cfg.advantage_std_floor)
+        self.gradients.share(rows)
+        size = rows["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
         # Accumulate on the device and read once per update: no host sync per minibatch.
         sums = dict.fromkeys(
@@ -215,7 +215,7 @@ class Trainer:
             permutation = permutation.to(self.device)
             for k in range(cfg.num_minibatches):
                 idx = permutation[k * minibatch : (k + 1) * minibatch]
-                terms, grad_norm = self.optimizer_step(batch, idx)
+                terms, grad_norm = self.optimizer_step(rows, idx)
                 finite &= torch.isfinite(terms.total)
                 for key, value in (
                     ("policy_loss", terms.policy),
@@ -233,10 +233,10 @@ class Trainer:
             )
         return {key: float(value) / count for key, value in sums.items()}
 
-    def optimizer_step(self, batch: dict[str, torch.Tensor], idx: torch.Tensor):
-        """One PPO step on the minibatch of rows `idx` of the update's `batch` of rows (already
+    def optimizer_step(self, rows: dict[str, torch.Tensor], idx: torch.Tensor):
+        """One PPO step on the minibatch `idx` of the update's `rows` (already
         shared with `self.gradients`); its loss terms and gradient norm before clipping."""
-        returns = batch["returns"][idx]
+        returns = rows["returns"][idx]
         self.value_norm.update(returns)
         self.params.zero_grad()
         terms = self.gradients.backward(idx, self.value_norm.normalize(returns))
@@ -356,10 +356,10 @@ class Trainer:
 
     def _as_loaded(self):
         """This trainer's policy as `mat eval` sees a checkpoint: weights + obs normaliser."""
-        from mat_sdk.evaluation import LoadedPolicy
+        from mat_sdk.evaluation import CheckpointPolicy
 
         norm = self.obs_norm if self.config.normalize_obs else None
-        return LoadedPolicy(self.policy, norm, {"train": asdict(self.config)})
+        return CheckpointPolicy(self.policy, norm, {"train": asdict(self.config)})
 
     def close(self) -> None:
         for env in self.envs:

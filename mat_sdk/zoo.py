@@ -25,7 +25,7 @@ from scipy import stats
 from mat_export import export
 from mat_runtime.zoo import NAME, models, zoo_dir
 from mat_sdk import checkpoint, envs, files
-from mat_sdk.evaluation import LoadedPolicy, evaluate
+from mat_sdk.evaluation import CheckpointPolicy, evaluate
 from mat_sdk.recipes import EVALUATION_SEED, random_team_return
 
 
@@ -88,7 +88,7 @@ def add(
         with files.writing(target):
             shutil.copyfile(source, staging / "checkpoint.pt")
         export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=True)
-        loaded = LoadedPolicy.from_checkpoint(staging / "checkpoint.pt")
+        loaded = CheckpointPolicy.from_checkpoint(staging / "checkpoint.pt")
         returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=True)
         options = train.get("env_options") or {}
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)

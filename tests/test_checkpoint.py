@@ -11,7 +11,7 @@ from helpers import make_checkpoint
 from mat_export import export
 from mat_sdk import checkpoint
 from mat_sdk.checkpoint import CheckpointError
-from mat_sdk.evaluation import LoadedPolicy
+from mat_sdk.evaluation import CheckpointPolicy
 from mat_sdk.trainer import Trainer
 
 
@@ -85,7 +85,7 @@ def test_an_edited_checkpoint_is_refused_by_every_reader(payload, tmp_path, case
     edit, message = EDITS[case]
     path = _edited(payload, tmp_path, case.replace(" ", "_"), edit)
     readers = {
-        "eval": LoadedPolicy.from_checkpoint,
+        "eval": CheckpointPolicy.from_checkpoint,
         "resume": Trainer.load,
         "finetune": Trainer.from_pretrained,
         "export": lambda p: export(p, tmp_path / "bundle"),
@@ -100,7 +100,7 @@ def test_resume_names_a_missing_training_state(payload, tmp_path):
     path = _edited(payload, tmp_path, "no_rng", lambda p: p.pop("rng"))
     with pytest.raises(CheckpointError, match="cannot resume from it.*KeyError: 'rng'"):
         Trainer.load(path)
-    assert LoadedPolicy.from_checkpoint(path) is not None  # evaluation needs no rng
+    assert CheckpointPolicy.from_checkpoint(path) is not None  # evaluation needs no rng
 
 
 def test_a_pickle_that_would_run_code_is_refused_with_the_reason(tmp_path):
@@ -125,7 +125,7 @@ def test_checkpoints_written_by_earlier_versions_still_load_resume_and_export(pa
     were saved with their device and TrainConfig gained options)."""
     from mat_runtime import Policy
 
-    loaded = LoadedPolicy.from_checkpoint(path)
+    loaded = CheckpointPolicy.from_checkpoint(path)
     with Trainer.load(path, out_dir=tmp_path / "run") as trainer:
         assert trainer.model_config == loaded.policy.cfg
         start = trainer.progress["steps"]

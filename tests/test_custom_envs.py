@@ -175,7 +175,9 @@ def test_action_masks_reach_the_policy(factory):
     with Trainer(spec, "mat", num_envs=4, rollout_length=5, num_minibatches=1) as trainer:
         trajectory = trainer.rollout()
         rows = trajectory.rows()
-        log_prob, _, _ = trainer.policy.evaluate(rows["obs"], rows["actions"], rows["available"])
+        log_prob, _, _ = trainer.policy.evaluate_actions(
+            rows["obs"], rows["actions"], rows["available"]
+        )
     chosen = trajectory.actions[..., 0]  # [T, E, n]
     active = trajectory.active[..., 0] > 0
     last_choice = torch.tensor([1.0, 3.0, 2.0]).expand_as(chosen)
@@ -214,7 +216,7 @@ def test_padded_dimensions_and_gone_agents_get_exactly_zero_gradient():
     assert {"active", "action_dims"} <= set(rows)
     inactive = rows["active"][..., 0] == 0
     assert inactive[:, 2].any() and not inactive[:, :2].any()  # only c ever leaves
-    log_prob, entropy, values = trainer.policy.evaluate(rows["obs"], rows["actions"])
+    log_prob, entropy, values = trainer.policy.evaluate_actions(rows["obs"], rows["actions"])
     log_prob, entropy, values = (x.detach().requires_grad_() for x in (log_prob, entropy, values))
     terms = ppo_loss(
         log_prob, rows["log_probs"], rows["advantages"], entropy, values, rows["values"],

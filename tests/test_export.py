@@ -205,10 +205,10 @@ def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, mat_bund
     )
     session = ort.InferenceSession(str(mat_bundle[0] / "encoder.onnx"))
     _, values = session.run(None, {"obs": obs})
-    from mat_sdk.evaluation import LoadedPolicy
+    from mat_sdk.evaluation import CheckpointPolicy
     from mat_sdk.normalization import ValueNorm
 
-    loaded = LoadedPolicy.from_checkpoint(mat_checkpoint)
+    loaded = CheckpointPolicy.from_checkpoint(mat_checkpoint)
     value_norm = ValueNorm()
     value_norm.load_state_dict(payload["value_norm"])
     with torch.no_grad():
@@ -223,13 +223,13 @@ def test_decode_graph_runs_the_whole_control_step_and_samples_from_given_noise(
 ):
     import onnxruntime as ort
 
-    from mat_sdk.evaluation import LoadedPolicy
+    from mat_sdk.evaluation import CheckpointPolicy
 
     session = ort.InferenceSession(str(mat_bundle[0] / "decode.onnx"))
     assert [i.name for i in session.get_inputs()] == ["obs", "noise"]
     names = ["actions", "clipped_actions", "mean", "std", "values", "obs_check"]
     assert [o.name for o in session.get_outputs()] == names
-    loaded = LoadedPolicy.from_checkpoint(mat_checkpoint)
+    loaded = CheckpointPolicy.from_checkpoint(mat_checkpoint)
     rng = np.random.default_rng(3)
     for n in (1, 5, 33):  # any agent count, one call
         obs = rng.normal(size=(2, n, loaded.policy.cfg.obs_dim)).astype(np.float32)

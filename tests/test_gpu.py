@@ -19,7 +19,7 @@ def test_cached_decoding_equals_teacher_forcing_on_cuda():
     policy = MAT(ModelConfig(obs_dim=9, action_size=3, n_agents=17, n_block=2, n_head=2)).cuda()
     obs = torch.randn(8, 17, 9, device="cuda")
     actions, log_probs, values = policy.act(obs, generator=torch.Generator("cuda").manual_seed(0))
-    forced, _, forced_values = policy.evaluate(obs, actions)
+    forced, _, forced_values = policy.evaluate_actions(obs, actions)
     assert (forced - log_probs).abs().max() <= 1e-5
     assert (forced_values - values).abs().max() <= 1e-5
 

@@ -24,7 +24,7 @@ def test_cached_decoding_equals_teacher_forcing(action_type, n, window):
         available[..., 0] = 1.0
     generator = torch.Generator().manual_seed(1)
     actions, log_probs, values = policy.act(obs, available, generator=generator)
-    forced_log_probs, _, forced_values = policy.evaluate(obs, actions, available)
+    forced_log_probs, _, forced_values = policy.evaluate_actions(obs, actions, available)
     assert (forced_log_probs - log_probs).abs().max() <= 1e-5
     assert (forced_values - values).abs().max() <= 1e-5
     if action_type == "discrete":
@@ -72,7 +72,7 @@ def test_every_algo_acts_and_evaluates(algo):
     obs = torch.randn(4, 3, 7)
     actions, log_probs, values = policy.act(obs)
     assert actions.shape == (4, 3, 3) and log_probs.shape == (4, 3, 3) and values.shape == (4, 3, 1)
-    forced, entropy, _ = policy.evaluate(obs, actions)
+    forced, entropy, _ = policy.evaluate_actions(obs, actions)
     assert torch.allclose(forced, log_probs, atol=1e-5) and entropy.shape == (4, 3, 3)
     deterministic, _, _ = policy.act(obs, deterministic=True)
     assert torch.equal(deterministic, policy.act(obs, deterministic=True)[0])

@@ -18,7 +18,7 @@ def test_onnx_actor_log_probs_and_values_match_torch(env_id):
     obs = torch.randn(8, 5, policy.cfg.obs_dim)
     actions, log_probs, values = actor.act(obs, torch.Generator().manual_seed(0))
     with torch.no_grad():
-        expected_log_probs, _, expected_values = policy.evaluate(obs, actions)
+        expected_log_probs, _, expected_values = policy.evaluate_actions(obs, actions)
     assert torch.allclose(log_probs, expected_log_probs, atol=1e-4)
     assert torch.allclose(values, expected_values, atol=1e-5)
     deterministic, _, _ = actor.act(obs, None, deterministic=True)

@@ -18,7 +18,7 @@ import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
 from mat_sdk.envs import make_team
-from mat_sdk.evaluation import LoadedPolicy
+from mat_sdk.evaluation import CheckpointPolicy
 from mat_sdk.recipes import with_examples
 
 COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
@@ -48,14 +48,14 @@ def _obs(policy, n, batch=None, seed=0):
     return 2.0 * np.random.default_rng(seed).standard_normal(shape)  # float64, as users pass
 
 
-def _torch_actions(loaded: LoadedPolicy, obs: np.ndarray) -> np.ndarray:
+def _torch_actions(loaded: CheckpointPolicy, obs: np.ndarray) -> np.ndarray:
     return loaded.act(obs[None] if obs.ndim == 2 else obs)
 
 
 @pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-window", "mat-dec", "mappo"])
 def test_deterministic_actions_equal_the_torch_policy(bundles, name):
     ckpt, bundle = bundles[name]
-    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    policy, loaded = Policy.load(bundle), CheckpointPolicy.from_checkpoint(ckpt)
     counts = (3,) if name == "mappo" else COUNTS
     for n in counts:
         obs = _obs(policy, n)
@@ -70,7 +70,7 @@ def test_deterministic_actions_equal_the_torch_policy(bundles, name):
 
 def test_batched_values_and_distribution_match_torch(bundles):
     ckpt, bundle = bundles["mat"]
-    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    policy, loaded = Policy.load(bundle), CheckpointPolicy.from_checkpoint(ckpt)
     obs = _obs(policy, 6, batch=4)
     actions, extra = policy.act(obs, return_values=True)
     with torch.no_grad():
@@ -90,7 +90,7 @@ def test_batched_values_and_distribution_match_torch(bundles):
 def test_discrete_sampling_follows_the_torch_joint_distribution(bundles):
     """20,000 sampled joint choices vs the exact joint probabilities from torch's log-probs."""
     ckpt, bundle = bundles["mat-discrete"]
-    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    policy, loaded = Policy.load(bundle), CheckpointPolicy.from_checkpoint(ckpt)
     samples = 20_000
     obs = np.repeat(_obs(policy, 3)[None], samples, axis=0)
     available = np.ones((samples, 3, 3), bool)
@@ -100,7 +100,7 @@ def test_discrete_sampling_follows_the_torch_joint_distribution(bundles):
     joints = np.array(np.meshgrid(*[range(3)] * 3, indexing="ij")).reshape(3, -1).T  # all 27
     with torch.no_grad():
         x = torch.from_numpy(loaded.obs_norm.normalize(obs[: len(joints)]))
-        log_prob, _, _ = loaded.policy.evaluate(
+        log_prob, _, _ = loaded.policy.evaluate_actions(
             x,
             torch.from_numpy(joints[:, :, None]).float(),
             torch.from_numpy(available[: len(joints)]).float(),
@@ -116,7 +116,7 @@ def test_discrete_sampling_follows_the_torch_joint_distribution(bundles):
 def test_continuous_sampling_follows_the_torch_distribution(bundles):
     """Runtime samples, scored by torch teacher-forced on those same samples: z ~ N(0, 1)."""
     ckpt, bundle = bundles["mat"]
-    policy, loaded = Policy.load(bundle), LoadedPolicy.from_checkpoint(ckpt)
+    policy, loaded = Policy.load(bundle), CheckpointPolicy.from_checkpoint(ckpt)
     obs = np.repeat(_obs(policy, 6)[None], 5000, axis=0)
     rng = np.random.default_rng(3)
     actions = policy.act(obs, deterministic=False, seed=rng, clip=False)  # as conditioned on

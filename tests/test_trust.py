@@ -21,7 +21,7 @@ import torch
 from mat_runtime import Policy
 from mat_sdk import checkpoint, envs
 from mat_sdk.envs import UntrustedEnvError
-from mat_sdk.evaluation import LoadedPolicy, evaluate
+from mat_sdk.evaluation import CheckpointPolicy, evaluate
 from mat_sdk.trainer import Trainer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,7 +122,7 @@ def test_the_python_api_refuses_recorded_ids_without_the_opt_in(planted, monkeyp
     for call in (
         lambda: Trainer.load(hostile),
         lambda: Trainer.from_pretrained(hostile),
-        lambda: evaluate(LoadedPolicy.from_checkpoint(hostile), 1),
+        lambda: evaluate(CheckpointPolicy.from_checkpoint(hostile), 1),
     ):
         with pytest.raises(UntrustedEnvError, match="records the env id 'planted:make'"):
             call()
@@ -138,7 +138,7 @@ def test_what_imports_nothing_stays_so(planted):
     the user names never import the recorded id."""
     policy = Policy.load(planted / "bundle")
     assert policy.env_id == HOSTILE and "joints" in policy.describe()
-    loaded = LoadedPolicy.from_checkpoint(planted / "hostile.pt")
+    loaded = CheckpointPolicy.from_checkpoint(planted / "hostile.pt")
     assert len(evaluate(loaded, 1, env_id="hopper-2x2")) == 1
     run = _run(["eval", "hostile.pt", "--episodes", "1", "--env", "hopper-2x2"], planted)
     assert run.returncode == 0, run.stderr

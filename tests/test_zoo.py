@@ -10,7 +10,7 @@ import pytest
 from mat_runtime import BundleError, Policy
 from mat_runtime.zoo import models, zoo_dir
 from mat_sdk import checkpoint
-from mat_sdk.evaluation import LoadedPolicy, evaluate
+from mat_sdk.evaluation import CheckpointPolicy, evaluate
 
 MODELS = models()
 
@@ -34,7 +34,7 @@ def test_a_zoo_model_reproduces_its_card_far_above_a_random_team(name):
     to the float differences between CPUs (which a long episode can amplify)."""
     card = _card(name)
     score = card["return"]
-    loaded = LoadedPolicy.from_checkpoint(f"zoo:{name}")
+    loaded = CheckpointPolicy.from_checkpoint(f"zoo:{name}")
     returns = evaluate(loaded, score["episodes"], seed=score["evaluation_seed"])
     assert abs(np.mean(returns) - score["mean"]) <= max(0.05 * abs(score["mean"]), 1.0)
     random = card["random_team_return"]

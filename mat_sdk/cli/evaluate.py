@@ -37,9 +37,9 @@ def evaluate(
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
       mat eval runs/go2/checkpoint.pt --env-option 'command=[0.7,0,0]' --trust-env-code
     """
-    from mat_sdk.evaluation import LoadedPolicy, evaluate_episodes
+    from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
 
-    loaded = LoadedPolicy.from_checkpoint(checkpoint)
+    loaded = CheckpointPolicy.from_checkpoint(checkpoint)
     result = evaluate_episodes(
         loaded,
         episodes,
