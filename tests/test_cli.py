@@ -147,7 +147,10 @@ def test_export_command_refuses_bad_input_in_one_line(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-DOCUMENTED = ("README.md", "BENCHMARKS.md", "docs/RESULTS.md", "docs/FEWSHOT.md")
+DOCUMENTED = (
+    "README.md", "BENCHMARKS.md", "docs/RESULTS.md", "docs/FEWSHOT.md", "docs/GUIDE.md",
+    "docs/REAL_ROBOTS.md", "docs/CUSTOM_ENVS.md",
+)  # fmt: skip
 INVOCATION = re.compile(r"(?:^|`|&& )\s*mat ([^`&#\n]*)", re.MULTILINE)
 
 
@@ -183,7 +186,7 @@ def test_every_documented_command_and_option_exists():
             isinstance(command, click.Group) and words and not runs_alone
         )
         assert not named_none, f"{where}: `mat {line}` names no command"
-        options = {opt for param in command.params for opt in param.opts}
+        options = {opt for param in command.params for opt in (*param.opts, *param.secondary_opts)}
         for word in words:
             if word.startswith("--") and word not in ("--help",):
                 assert word in options, f"{where}: `mat {line}`: {command.name} has no {word}"
