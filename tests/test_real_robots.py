@@ -229,3 +229,34 @@ def test_mat_train_says_when_it_trains_more_steps_than_asked(tmp_path):
     assert run.returncode == 0, run.stderr
     assert "--steps 10: training runs whole updates of 16 env steps" in run.stdout
     assert "this run ends at 16 steps" in run.stdout
+
+
+@pytest.mark.slow
+def test_every_command_of_the_real_robot_tutorial_runs(tmp_path):
+    """docs/REAL_ROBOTS.md's commands as a user runs them, shortened to one update, one
+    episode and one second: train a seed set, evaluate at 0.7 m/s, export, run the
+    controller from the robot's sensors."""
+    import os
+    import shlex
+
+    text = (REPO / "docs" / "REAL_ROBOTS.md").read_text()
+    lines = [line for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S)
+             for line in block.splitlines() if line and not line.startswith("export ")]  # fmt: skip
+    programs = [line.split()[:2] for line in lines]
+    assert programs == [["mat", "train"], ["mat", "eval"], ["mat", "export"],
+                        ["python", "examples/go2_controller.py"]]  # fmt: skip
+    short = {"--seeds": "1", "--steps": "1", "--episodes": "1", "--seconds": "1"}
+    (tmp_path / "examples").symlink_to(REPO / "examples")
+    environment = {**os.environ, "PYTHONPATH": str(tmp_path / "examples")}
+    outputs = []
+    for line in lines:
+        words = shlex.split(line)
+        words = [short.get(words[i - 1], word) if i else word for i, word in enumerate(words)]
+        program = (
+            [str(Path(sys.executable).with_name("mat"))] if words[0] == "mat" else [sys.executable]
+        )
+        run = subprocess.run([*program, *words[1:]], cwd=tmp_path, env=environment,
+                             capture_output=True, text=True, timeout=600)  # fmt: skip
+        assert run.returncode == 0, f"{line}\n{run.stdout}\n{run.stderr}"
+        outputs.append(run.stdout)
+    assert "forward speed" in outputs[1] and "falls" in outputs[3]
