@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from mat_export.graphs import cache_names
+from mat_runtime.step import decode_agents
 from mat_sdk.model import MAT
 
 PARITY_LIMIT = 1e-4
@@ -113,32 +114,23 @@ def torch_decode(policy, x: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Te
 
 
 def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | None) -> dict:
-    """Deterministic decode with the step graph; `forced_actions` feeds given actions instead."""
+    """Deterministic decode with the step graph (the runtime's own `decode_agents` for MAT);
+    `forced_actions` conditions each agent on given actions instead."""
     cfg = policy.cfg
     discrete = cfg.action_type == "discrete"
     batch, n = rep.shape[:2]
+    available = np.ones((batch, n, cfg.action_size), np.float32) if discrete else None
     if not isinstance(policy, MAT):
-        feed = {"rep": rep}
-        if discrete:
-            feed["available"] = np.ones((batch, n, cfg.action_size), np.float32)
+        feed = {"rep": rep, **({"available": available} if discrete else {})}
         params = step.run(None, feed)[0]
         actions = params.argmax(-1)[..., None].astype(np.float32) if discrete else params
         return {"params": params, "actions": actions}
-    head_dim = cfg.n_embd // cfg.n_head
-    names = cache_names(cfg.n_block)
-    past = {p: np.zeros((batch, cfg.n_head, 0, head_dim), np.float32) for p, _ in names}
-    token = policy.start_token(batch).numpy()
-    all_params, all_actions = [], []
-    for i in range(n):
-        feed = {"rep": rep[:, i : i + 1], "token": token, **past}
-        if discrete:
-            feed["available"] = np.ones((batch, 1, cfg.action_size), np.float32)
-        out = step.run(None, feed)
-        params = out[0]
-        past = {p: value for (p, _), value in zip(names, out[-len(names) :], strict=True)}
-        action = params.argmax(-1)[..., None].astype(np.float32) if discrete else params
-        chosen = action if forced_actions is None else forced_actions[:, i : i + 1]
-        all_params.append(params)
-        all_actions.append(action)
-        token = policy.action_token(torch.from_numpy(chosen.astype(np.float32))).numpy()
-    return {"params": np.concatenate(all_params, 1), "actions": np.concatenate(all_actions, 1)}
+    layout = (cache_names(cfg.n_block), cfg.n_head, cfg.n_embd // cfg.n_head,
+              policy.decoder.token_dim)  # fmt: skip
+    noise = np.zeros((batch, n, cfg.action_size), np.float32)
+    decoded = list(decode_agents(step, layout, rep, noise, available, forced=forced_actions))
+    key = "logits" if discrete else "mean"
+    return {
+        "params": np.concatenate([params[key] for _, _, params in decoded], axis=1),
+        "actions": np.stack([action for _, action, _ in decoded], axis=1),
+    }

@@ -131,36 +131,58 @@ class StepPolicy(Policy):
         elif available is not None:
             raise InputError("`available` is for discrete policies; this one is continuous")
         rep, values = self._encoder.run(None, {"obs": obs32})
-        past = {name: np.zeros((batch, self._heads, 0, self._head_dim), np.float32)
-                for name, _ in self._caches}  # fmt: skip
-        token = np.zeros((batch, 1, self._token_size), np.float32)
-        if self.discrete:
-            token[:, 0, 0] = 1.0  # the start slot
-        for agent in range(n):
-            feed = {"rep": rep[:, agent : agent + 1], "token": token, **past}
-            if self.discrete:
-                feed["available"] = mask[:, agent : agent + 1]
-            outputs = self._step.run(None, feed)
-            head = outputs[: -len(self._caches)]
-            past = {name: value for (name, _), value in
-                    zip(self._caches, outputs[-len(self._caches):], strict=True)}  # fmt: skip
-            drawn = noise[:, agent : agent + 1]
-            if self.discrete:
-                logits = head[0]
-                choice = (logits + drawn).argmax(-1)
-                action = choice.astype(np.float32)
-                token = np.zeros_like(token)
-                token[np.arange(batch), 0, choice[:, 0] + 1] = 1.0
-                params = {"logits": logits}
-            else:
-                mean, std = head
-                action = mean + std * drawn
-                token = action
-                params = {"mean": mean, "std": std}
-                if clip:
-                    action = np.clip(action, self._low, self._high)
+        bounds = (self._low, self._high) if clip else None
+        layout = (self._caches, self._heads, self._head_dim, self._token_size)
+        for agent, action, params in decode_agents(
+            self._step, layout, rep, noise, mask, bounds=bounds
+        ):
             params["values"] = values[:, agent : agent + 1, 0]
-            yield agent, action[:, 0].reshape(batch, -1), params
+            yield agent, action, params
+
+
+def decode_agents(step, layout, rep: np.ndarray, noise: np.ndarray, available=None, *,
+                  forced: np.ndarray | None = None, bounds=None):  # fmt: skip
+    """Drive `decoder_step.onnx` (session `step`) over the agents of `rep` [B, n, embd]:
+    (agent, action [B, A or 1], its distribution's outputs) in order. `layout`: the caches'
+    (past, present) names, heads, head size and token size; `noise` [B, n, A] (zero: the
+    mean or argmax; Gaussian or Gumbel: a sample); `available` [B, n, A] for discrete
+    choices; `forced` [B, n, A or 1]: condition each next agent on these actions instead of
+    the ones decoded (teacher forcing); `bounds`: clip continuous actions to (low, high).
+    The agent-by-agent reference that the runtime's step path and the exporter's parity use."""
+    caches, heads, head_dim, token_size = layout
+    batch, n = rep.shape[:2]
+    discrete = available is not None
+    past = {name: np.zeros((batch, heads, 0, head_dim), np.float32) for name, _ in caches}
+    token = np.zeros((batch, 1, token_size), np.float32)
+    if discrete:
+        token[:, 0, 0] = 1.0  # the start slot
+    for agent in range(n):
+        feed = {"rep": np.ascontiguousarray(rep[:, agent : agent + 1]), "token": token, **past}
+        if discrete:
+            feed["available"] = np.ascontiguousarray(available[:, agent : agent + 1])
+        outputs = step.run(None, feed)
+        head = outputs[: -len(caches)]
+        past = {name: value for (name, _), value in
+                zip(caches, outputs[-len(caches):], strict=True)}  # fmt: skip
+        drawn = noise[:, agent : agent + 1]
+        if discrete:
+            logits = head[0]
+            choice = (logits + drawn).argmax(-1)
+            action = choice[..., None].astype(np.float32)
+            params = {"logits": logits}
+        else:
+            mean, std = head
+            action = mean + std * drawn
+            params = {"mean": mean, "std": std}
+        given = action if forced is None else forced[:, agent : agent + 1]
+        if discrete:
+            token = np.zeros_like(token)
+            token[np.arange(batch), 0, given[:, 0, 0].astype(np.int64) + 1] = 1.0
+        else:
+            token = np.ascontiguousarray(given, dtype=np.float32)
+        if bounds is not None and not discrete:
+            action = np.clip(action, *bounds)
+        yield agent, action[:, 0], params
 
 
 def _batched(available, obs: np.ndarray) -> np.ndarray:

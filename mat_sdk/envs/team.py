@@ -535,7 +535,7 @@ class RobotTeam(ArrayTeam):
         camera = mujoco.MjvCamera()
         camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
         camera.trackbodyid = self._base.body if self._base is not None else 1
-        camera.distance = 1.5 * float(self._model.stat.extent)
-        camera.azimuth, camera.elevation = 135.0, -20.0
+        camera.distance = 1.2 * float(self._model.stat.extent)
+        camera.azimuth, camera.elevation = 120.0, -15.0
         renderer.update_scene(self._data, camera)
         return renderer.render()

@@ -143,11 +143,13 @@ class TrackYawRate(Term):
 @dataclass(frozen=True)
 class FeetAirTime(Term):
     """Steps of a useful length: when a foot lands, its time in the air minus `threshold`
-    seconds (legged_gym's term; short shuffles cost, strides pay). Only while the command
-    asks to move."""
+    seconds (legged_gym's term; short shuffles cost, strides pay), only while the command
+    asks to move; and every step, a foot in the air for longer than `longest` seconds costs
+    the excess (a leg held up is no step: without it, three-legged gaits win)."""
 
     feet: tuple[str, ...] = ()
     threshold: float = 0.5
+    longest: float = 1.0
 
     def value(self, step: Step) -> float:
         contacts = step.cached(("contacts", self.feet), lambda m: Contacts(m, self.feet))
@@ -156,10 +158,11 @@ class FeetAirTime(Term):
         air = step.memory.setdefault(key, np.zeros(len(self.feet)))
         landed = (air > 0) & touching
         air += step.control_timestep
-        reward = float(((air - self.threshold) * landed).sum())
-        air[touching] = 0.0
         moving = step.command.size == 0 or float(np.linalg.norm(step.command[:2])) > 0.1
-        return reward if moving else 0.0
+        strides = float(((air - self.threshold) * landed).sum()) if moving else 0.0
+        held = float(np.maximum(air - self.longest, 0.0)[~touching].sum())
+        air[touching] = 0.0
+        return strides - held
 
 
 @dataclass(frozen=True)
