@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -106,6 +107,19 @@ class Episodes:
         return line
 
 
+@contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """Act on one torch thread, as the trainer does: a control step's matrices are too small to
+    share, and torch's default pool (a thread per core) stalls whenever other processes hold
+    the cores."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def evaluate(
     loaded: CheckpointPolicy,
     episodes: int = 10,
@@ -151,7 +165,10 @@ def evaluate_episodes(
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise ValueError(f"video {video}: name a {' / '.join(VIDEO_SUFFIXES)} file")
     generator = torch.Generator().manual_seed(seed)
-    with envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec:
+    with (
+        one_torch_thread(),
+        envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec,
+    ):
         check_fits(loaded.policy.cfg, vec, env_id)
         obs = vec.reset(seed=seed)
         returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)

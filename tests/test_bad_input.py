@@ -371,7 +371,15 @@ def test_zoo_add_replaces_only_with_force_and_leaves_nothing_when_refused(zoo):
     assert [p.name for p in (zoo / "zoo").iterdir()] == ["game"]  # no staging left
 
 
-@pytest.mark.parametrize("card", ["{", "[1, 2]", '{"name": "x"}'], ids=["invalid", "list", "keys"])
+@pytest.mark.parametrize(
+    "card",
+    [
+        pytest.param("{", marks=pytest.mark.slow),
+        pytest.param("[1, 2]", marks=pytest.mark.slow),
+        '{"name": "x"}',
+    ],
+    ids=["invalid", "list", "keys"],
+)
 def test_a_broken_card_is_named_and_the_others_still_list(zoo, card):
     from mat_sdk.zoo import add
 

@@ -119,7 +119,14 @@ def test_a_pickle_that_would_run_code_is_refused_with_the_reason(tmp_path):
 WRITTEN_BEFORE = sorted((Path(__file__).parent / "data").glob("*-5510455.pt"))
 
 
-@pytest.mark.parametrize("path", WRITTEN_BEFORE, ids=lambda p: p.stem)
+@pytest.mark.parametrize(
+    "path",
+    [
+        pytest.param(p, marks=[pytest.mark.slow] if "hopper" in p.stem else [])
+        for p in WRITTEN_BEFORE
+    ],
+    ids=lambda p: p.stem,
+)
 def test_checkpoints_written_by_earlier_versions_still_load_resume_and_export(path, tmp_path):
     """Files from commit 5510455 (before the model's action width was renamed, generators
     were saved with their device and TrainConfig gained options)."""

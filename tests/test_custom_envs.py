@@ -457,6 +457,7 @@ def _check_tutorial(tmp_path: Path, shorten: bool) -> dict[str, str]:
     return outputs
 
 
+@pytest.mark.slow
 def test_every_tutorial_command_runs_with_the_ids_it_names(tmp_path):
     """module:function ids through mat train, eval, export and the controller (subprocesses)."""
     outputs = _check_tutorial(tmp_path, shorten=True)

@@ -64,6 +64,7 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_bundle):
         assert props["obs_dim"] == on_disk["obs_dim"] and props["algo"] == "mat"
 
 
+@pytest.mark.slow
 def test_export_is_deterministic(mat_checkpoint, mat_bundle, tmp_path):
     export(mat_checkpoint, tmp_path / "b")
     for name in (
@@ -95,7 +96,10 @@ def test_one_head_discrete_and_baseline_policies_export(tmp_path, env_id, algo, 
 
 @pytest.mark.parametrize(
     ("env_id", "model"),
-    [("hopper-2x2", {}), ("coordination-3", {"n_head": 2, "n_block": 2})],  # stream, per-head
+    [
+        ("hopper-2x2", {}),  # stream
+        pytest.param("coordination-3", {"n_head": 2, "n_block": 2}, marks=pytest.mark.slow),
+    ],  # per-head
 )
 def test_windowed_attention_exports_at_parity_beyond_its_window(tmp_path, env_id, model):
     checkpoint = make_checkpoint(tmp_path / "c.pt", env_id, attention_window=3, **model)

@@ -27,6 +27,7 @@ def test_onnx_actor_log_probs_and_values_match_torch(env_id):
     assert torch.allclose(deterministic, torch_deterministic, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_onnx_rollouts_learn_the_coordination_game():
     """One seed is safe: `mat bench seeds --recipe game-onnx`."""
     learned = recipes.onnx_game_return()

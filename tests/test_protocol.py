@@ -46,6 +46,7 @@ def test_env_and_task_names_follow_marl_eval():
     assert env_and_task("cheetah-6x1") == ("mat_sdk", "cheetah-6x1")
 
 
+@pytest.mark.slow
 def test_a_seed_set_writes_one_ordinary_run_per_seed(tmp_path):
     run = mat("train", *TINY, "--steps", "100", "--seeds", "2", "--out", str(tmp_path))
     assert "2 seeds into" in run.stdout and "all 2 seeds finished" in run.stdout, run.stdout

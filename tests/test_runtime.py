@@ -209,7 +209,7 @@ print(json.dumps(report))
 """
 
 
-@pytest.mark.parametrize("name", ["mat", "mat-discrete"])
+@pytest.mark.parametrize("name", ["mat", pytest.param("mat-discrete", marks=pytest.mark.slow)])
 def test_acting_into_callers_arrays_allocates_nothing_per_call(bundles, name):
     policy = Policy.load(bundles[name][1])
     rng = np.random.default_rng(0)
@@ -379,6 +379,7 @@ def test_broken_bundles_are_refused_before_loading(bundles, tmp_path):
         Policy.load(source, providers=["NoSuchExecutionProvider"])
 
 
+@pytest.mark.slow
 def test_loading_while_an_export_replaces_the_bundle_never_fails(bundles, tmp_path):
     """`mat export --force` swaps a finished bundle in while a controller may be loading it:
     a load sees the old bundle or the new one, whole."""
@@ -785,8 +786,12 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
 @pytest.mark.parametrize(
     ("env_id", "options"),
     [
-        ("cheetah-6x1", {"faults": {"agent_1": "remove", "ffoot": "zero"}}),
-        ("swimmer-5", {"env_options": {"position": "ends"}}),
+        pytest.param(
+            "cheetah-6x1",
+            {"faults": {"agent_1": "remove", "ffoot": "zero"}},
+            marks=pytest.mark.slow,
+        ),
+        pytest.param("swimmer-5", {"env_options": {"position": "ends"}}, marks=pytest.mark.slow),
         ("my_robots:arm", {}),  # position servos: ctrl ranges that are not [-1, 1]
     ],
 )

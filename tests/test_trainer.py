@@ -72,7 +72,7 @@ RESUMABLE = {
     "in-process hopper": ("hopper-4x1", {}),
     "MaMuJoCo": ("mamujoco:HalfCheetah-6x1", {}),
     "env workers": ("hopper-4x1", {"workers": 1}),
-    "update workers": ("hopper-4x1", {"update_workers": 1}),
+    "update workers": pytest.param("hopper-4x1", {"update_workers": 1}, marks=pytest.mark.slow),
     "ONNX rollouts": ("hopper-4x1", {"rollout_backend": "onnx"}),
     "several agent counts": ("swimmer-4", {"more_envs": ["swimmer-5", "swimmer-6"]}),
     "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
@@ -175,6 +175,7 @@ trainer.learn(10_000_000, progress_bar=False)
 """
 
 
+@pytest.mark.slow
 def test_kill_9_leaves_a_checkpoint_that_resumes_as_if_never_killed(tmp_path):
     script = tmp_path / "train.py"
     script.write_text(KILL_SCRIPT)

@@ -34,6 +34,7 @@ def test_long_cpu_runs_tune_unless_told_and_the_given_settings_stay():
         wanted(True, TUNE_FROM_STEPS, on_cpu=False, fixed={})
 
 
+@pytest.mark.slow
 def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
     run = mat("train", *TINY, "--tune", "--out", str(tmp_path / "tuned"))
     assert "measuring the update settings" in run.stdout and "chosen: " in run.stdout

@@ -28,7 +28,13 @@ def test_the_zoo_has_models_and_mat_zoo_lists_them():
         assert f"| zoo:{name} | {_card(name)['env_id']} |" in out, out
 
 
-@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize(
+    "name",  # MaMuJoCo's models are the slower to evaluate
+    [
+        pytest.param(n, marks=[pytest.mark.slow] if n.startswith("halfcheetah") else [])
+        for n in MODELS
+    ],
+)
 def test_a_zoo_model_reproduces_its_card_far_above_a_random_team(name):
     """As `mat eval zoo:NAME --episodes N`: the same starts and batch, so the same returns up
     to the float differences between CPUs (which a long episode can amplify)."""
