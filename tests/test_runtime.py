@@ -201,7 +201,7 @@ def traced(call, count, warm=100):
     return end - start, max(left, default=0), peak - start
 
 traced(calls(6)["deterministic"], 1000)  # ORT's bindings keep objects from the first traced calls
-report = {mode: list(traced(call, 10_000)[:2])  # the plain call's copies: its peak only
+report = {mode: list(traced(call, 2_000)[:2])  # the plain call's copies: its peak only
           for mode, call in calls(6).items() if mode != "plain act"}
 for mode, call in calls(160).items():
     report.setdefault(mode, [None, None]).append(traced(call, 100, warm=10)[2])
