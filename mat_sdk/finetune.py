@@ -110,7 +110,7 @@ def _resumed(out, env, trust_env_code, options) -> tuple[Trainer, list[float]]:
     if resumed is None or not resumed.exists():
         raise FileNotFoundError(f"nothing to resume: {out}/{CHECKPOINT_NAME} does not exist")
     if env is not None:  # the run goes on on the env it records
-        recorded = checkpoints.load(resumed)["config"]["train"]["env"]
+        recorded = checkpoints.env_id(checkpoints.load(resumed))
         if envs.id_of(env) != recorded:
             raise ValueError(
                 f"{resumed} fine-tunes on {recorded!r}, not {env!r}; resume it without "

@@ -140,7 +140,7 @@ def main() -> None:
     if args.report and not table.exists():
         parser.error(f"--report: no results in {table}; run without --report")
     pretrained = checkpoints.load(args.checkpoint)
-    env_id = pretrained["config"]["train"]["env"]
+    env_id = checkpoints.env_id(pretrained)
     if args.report:
         report(table, args.out / "fewshot.png", env_id)
         return
