@@ -19,6 +19,8 @@ Options (keywords of `make`, `make_vec` and `make_team`):
     episode_limit  truncate episodes after this many steps (default: the suite's, 1000)
     task           another task of the same robot, e.g. task="run" for walker
     seed           random stream of the env (initial pose, target)
+    randomize      domain randomization: true (every factor at its default range), or a
+                   mapping of factors, e.g. {"payload": [0, 2], "push": null} (robots)
 Faults: `{"<agent name or joint name>": "zero" | "remove"}`. "zero" leaves the agent in the
 team with its actuator(s) producing nothing; "remove" takes the agent out of the team (its
 actuators produce nothing) so the agent count drops. Remaining agents keep their names and
@@ -53,6 +55,7 @@ from mat_sdk.envs.actuation import JointTargets
 from mat_sdk.envs.features import Observation
 from mat_sdk.envs.parallel import TeamParallelEnv
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
+from mat_sdk.envs.randomization import Randomization
 from mat_sdk.envs.registry import (
     ENTRY_POINT_GROUP,
     FAMILY_IDENTITY,
@@ -81,6 +84,7 @@ __all__ = [
     "Observation",
     "PettingZooSpec",
     "PettingZooTeam",
+    "Randomization",
     "RobotSpec",
     "RobotTeam",
     "TeamParallelEnv",

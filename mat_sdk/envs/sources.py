@@ -29,6 +29,7 @@ from mat_sdk.envs.actuation import JointTargets
 from mat_sdk.envs.base import user_call
 from mat_sdk.envs.features import Observation
 from mat_sdk.envs.model_task import ModelEnvironment
+from mat_sdk.envs.randomization import Randomization
 
 Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
 # Physics steps per env step at most: more is no control rate, and one env step would run
@@ -62,6 +63,7 @@ class RobotSpec:
     # observations from the hardware's signals instead of the raw joint state (features.py)
     observation: Observation | None = None
     actions: JointTargets | None = None  # actions as joint targets (actuation.py)
+    randomize: Randomization | None = None  # per-episode robot differences (randomization.py)
     # The task's reward in closed form, for speed; a test holds it equal to the task's.
     fast_reward: Callable[[control.Physics], float] | None = None
     description: str = ""
@@ -239,6 +241,7 @@ def from_mjcf(
     observation: Observation | None = None,
     actions: JointTargets | None = None,
     commands: terms.VelocityCommand | None = None,
+    randomize: bool | Mapping[str, Any] | Randomization | None = None,
     episode_limit: int = 1000,
     substeps: int = 1,
     hops: int = 1,
@@ -261,6 +264,9 @@ def from_mjcf(
     - `actions` (`envs.JointTargets`): joint targets around the start pose, with a PD layer
       for torque motors; otherwise an action spans each actuator's control range.
     - `commands` (`envs.terms.VelocityCommand`): a velocity command per episode.
+    - `randomize`: domain randomization (`envs.Randomization`, true for its defaults, or a
+      mapping of factors): friction, masses, payload, actuator strength, latency, sensor
+      noise, pushes, ... drawn per episode; the `randomize` env option overrides it.
     One env step is `substeps` physics steps of the model's own timestep.
     """
     if not isinstance(model, str | os.PathLike):
@@ -287,12 +293,13 @@ def from_mjcf(
         raise ValueError(f"keyframe must be a keyframe's name or None, got {keyframe!r}")
     if commands is not None and not isinstance(commands, terms.VelocityCommand):
         raise ValueError(f"commands must be an envs.terms.VelocityCommand, got {commands!r}")
+    randomization = Randomization.parse(randomize)
     factory = ModelEnvironment(
         source, _frozen(reward), _frozen(terminate), substeps, float(reset_noise), keyframe,
         (shift, turn), commands,
     )  # fmt: skip
     name = "model" if is_xml else Path(source).stem
-    return from_dm_control(
+    spec = from_dm_control(
         factory,
         layout,
         hops=hops,
@@ -304,6 +311,11 @@ def from_mjcf(
         env_id=env_id or f"mjcf:{name}",
         description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}",
     )
+    if randomization is None:
+        return spec
+    spec = replace(spec, randomize=randomization)
+    spec.build()  # refuse what the randomization cannot apply to this model, now
+    return spec
 
 
 def _frozen(value: Any) -> Any:

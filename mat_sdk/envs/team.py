@@ -46,6 +46,7 @@ from mat_sdk.envs.decomposition import (
     root_joints,
 )
 from mat_sdk.envs.features import Signal, robot_signals
+from mat_sdk.envs.randomization import Randomization, Randomizer
 from mat_sdk.envs.trunk import Trunk
 
 if TYPE_CHECKING:
@@ -76,10 +77,12 @@ class RobotTeam(ArrayTeam):
         task: str | None = None,
         position: str | None = None,
         command: list[float] | None = None,
+        randomize: bool | Mapping | Randomization | None = None,
     ):
         """Options left as None take the spec's (`RobotSpec.hops`, ...). `position` appends
         an identity that does not depend on the agent count (`base.POSITIONS`); `command`
-        holds a robot with velocity commands at (vx, vy, yaw_rate) in every episode."""
+        holds a robot with velocity commands at (vx, vy, yaw_rate) in every episode;
+        `randomize` varies the robot per episode and step (`randomization.py`; false: off)."""
         self.spec = spec
         self.env_id = spec.env_id
         self._env = spec.load(seed, task)
@@ -114,6 +117,15 @@ class RobotTeam(ArrayTeam):
         )
         self._build_action_map(zeroed)
         self._build_observation_map()
+        given = spec.randomize if randomize is None else randomize
+        self.randomization = Randomization.parse(given)
+        self._randomizer = None
+        if self.randomization is not None:
+            sources = [(signal.name, signal.size) for signal in self._signals]
+            self._randomizer = Randomizer(
+                self.randomization, self._model, self._data, self.control_timestep, sources,
+                spec.env_id,
+            )  # fmt: skip
         self._steps = 0
         try:  # a floating base, whose forward travel `travelled` measures
             self._base = Trunk(self._model)
@@ -419,11 +431,16 @@ class RobotTeam(ArrayTeam):
         """Start an episode; a seed restarts the task's random stream (initial pose, target)."""
         if seed is not None and hasattr(self._task, "_random"):  # suite tasks' random stream
             self._task._random = np.random.RandomState(seed)
+        randomizer, random = self._randomizer, self._task._random
+        if randomizer is not None:
+            randomizer.new_episode(random)
         with self.physics.reset_context():
             self._task.initialize_episode(self.physics)
+            if randomizer is not None:
+                randomizer.perturb_start(random)
         self._steps = 0
         self._start = self._base_position()
-        return self.observe()
+        return self._sensed()
 
     def _base_position(self) -> tuple[np.ndarray, np.ndarray] | None:
         """A floating base's horizontal position and heading (unit vector), else None."""
@@ -445,6 +462,9 @@ class RobotTeam(ArrayTeam):
         np.maximum(flat, -1.0, out=flat)
         if self._record is not None:
             self._record(self._ctrl_index, flat)
+        if self._randomizer is not None:  # a push now; the motors get a late action
+            self._randomizer.push(self._task._random)
+            flat = self._randomizer.delay(flat)
         time_before = self._data.time
         if self._targets is None:
             self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
@@ -461,7 +481,7 @@ class RobotTeam(ArrayTeam):
                 self._data.ctrl[self._ctrl_index] = self._targets.torques(self._data, targets)
                 self._physics_step(1, first=substep == 0, last=substep == self.substeps - 1)
         self._steps += 1
-        obs, reward = self.observe(), float(self._reward(self.physics))
+        obs, reward = self._sensed(), float(self._reward(self.physics))
         step, substep = self.control_timestep, self._model.opt.timestep
         if diverged(self._data, time_before, step, substep, reward):
             obs, reward = end_diverged(self.env_id, self._steps, obs)
@@ -483,10 +503,24 @@ class RobotTeam(ArrayTeam):
             mujoco.mj_step1(self._model, self._data)
 
     def observe(self) -> np.ndarray:
+        """The observation of the state now, `[n_agents, obs_dim]` (without sensor noise)."""
+        return self._observation(self._source())
+
+    def _source(self) -> np.ndarray:
         source = np.concatenate([signal.read() for signal in self._signals] + [self._constants])
         if self._offset is not None:
             source -= self._offset
+        return source
+
+    def _observation(self, source: np.ndarray) -> np.ndarray:
         return source[self._obs_index].astype(np.float32)
+
+    def _sensed(self) -> np.ndarray:
+        """The observation as the agents sense it: with this step's noise, when randomized."""
+        source = self._source()
+        if self._randomizer is not None:
+            self._randomizer.noise(source, self._task._random)
+        return self._observation(source)
 
     def get_state(self) -> dict:
         """Everything that decides the rest of the episode, to resume it exactly."""
@@ -499,6 +533,7 @@ class RobotTeam(ArrayTeam):
             "steps": self._steps,
             **({"task": self._task.get_state()} if hasattr(self._task, "get_state") else {}),
             **({"start": list(self._start)} if self._start is not None else {}),
+            **({"randomizer": self._randomizer.get_state()} if self._randomizer else {}),
         }
 
     def set_state(self, state: dict) -> None:
@@ -510,6 +545,8 @@ class RobotTeam(ArrayTeam):
             self._task.set_state(state["task"])
         if "start" in state:
             self._start = tuple(np.asarray(v, dtype=np.float64) for v in state["start"])
+        if self._randomizer is not None:
+            self._randomizer.set_state(state["randomizer"])
         mujoco.mj_forward(self._model, self._data)
 
     def state(self) -> np.ndarray:

@@ -1,0 +1,345 @@
+"""Domain randomization: the robot differs from episode to episode, the way a real one differs
+from its model, so a policy trained over the spread does not depend on the exact simulation.
+
+    envs.make("go2:walk", randomize=True)                     # every factor at its default range
+    envs.make("go2:walk", randomize={"push": None, "latency": [0, 2]})  # one off, one wider
+    envs.from_mjcf("arm.xml", layout, reward, randomize={"defaults": False, "friction": [0.5, 1]})
+
+Per episode: friction, body masses, a payload on the floating base, its centre of mass,
+actuator strength, joint damping and armature, extra start-pose noise, and the action latency
+(k control steps, k drawn per episode). Per step: observation noise on each named signal, in
+its own units, and pushes (a velocity kick on the base every few seconds). Every draw comes
+from the env's own seeded stream, so a seed gives the same episodes at any worker count and a
+resumed run continues exactly. A factor set to None is off; docs/REAL_ROBOTS.md says what each
+one models and how to size its range for one's robot.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+import mujoco
+import numpy as np
+
+Range = tuple[float, float]
+
+# Uniform noise of +- this much on each observed signal, in the signal's own units. The
+# hardware signals' levels follow legged_gym's (encoders 0.01 rad, 1.5 rad/s; gyro 0.2 rad/s;
+# gravity 0.05); the raw joint state of the built-in robots gets an encoder-like level.
+DEFAULT_NOISE = {
+    "joint_pos": 0.01,
+    "joint_vel": 1.5,
+    "gyro": 0.2,
+    "gravity": 0.05,
+    "accel": 0.2,
+    "qpos": 0.01,
+    "qvel": 0.1,
+}
+_FREE = int(mujoco.mjtJoint.mjJNT_FREE)
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """What differs between episodes, and by how much (each factor: None switches it off).
+
+    Scales multiply the model's own value; a range is drawn uniformly per episode."""
+
+    friction: Range | None = (0.5, 1.25)  # every geom's friction, one scale per episode
+    per_geom_friction: bool = False  # or a scale per geom
+    mass: Range | None = (0.9, 1.1)  # each body's mass and inertia, a scale per body
+    payload: Range | None = (0.0, 2.0)  # kg added at the floating base's centre of mass
+    com: float | None = 0.02  # m: the base's centre of mass moves up to this on each axis
+    strength: Range | None = (0.8, 1.2)  # each actuator's gain (a position actuator's kp)
+    damping: Range | None = (0.8, 1.2)  # each joint's damping, a scale per joint
+    armature: Range | None = (0.8, 1.2)  # each joint's armature (rotor inertia)
+    start: float | None = 0.05  # extra start-pose noise on each joint, in its units, in range
+    latency: tuple[int, int] | None = (0, 1)  # the action reaches the motors k steps late
+    noise: Mapping[str, float] | None = field(default_factory=lambda: dict(DEFAULT_NOISE))
+    push: float | None = 0.5  # m/s: a horizontal kick on the floating base, up to this
+    push_every: Range = (5.0, 10.0)  # s between pushes
+
+    def __post_init__(self):
+        for name in ("friction", "mass", "strength", "damping", "armature"):
+            _check_range(self, name, positive=True)
+        _check_range(self, "payload", positive=False)
+        for name in ("com", "start", "push"):
+            value = getattr(self, name)
+            if value is not None and not (_real(value) and 0 <= value < math.inf):
+                raise ValueError(f"randomize {name} must be a number >= 0 or null, got {value!r}")
+        _check_range(self, "push_every", positive=True, optional=False)
+        if self.latency is not None:
+            pair = _pair(self.latency, "latency")
+            if not all(float(v).is_integer() and v >= 0 for v in pair) or pair[0] > pair[1]:
+                raise ValueError(
+                    f"randomize latency is [low, high] control steps, whole numbers >= 0, got "
+                    f"{self.latency!r}"
+                )
+            object.__setattr__(self, "latency", (int(pair[0]), int(pair[1])))
+        if not isinstance(self.per_geom_friction, bool):
+            raise ValueError("randomize per_geom_friction must be true or false")
+        if self.noise is not None:
+            if not isinstance(self.noise, Mapping) or not all(
+                isinstance(k, str) and _real(v) and 0 <= v < math.inf for k, v in self.noise.items()
+            ):
+                raise ValueError(
+                    'randomize noise maps signal names to levels >= 0 (e.g. {"joint_pos": '
+                    f"0.01}}), got {self.noise!r}"
+                )
+            object.__setattr__(self, "noise", {k: float(v) for k, v in self.noise.items()})
+
+    @classmethod
+    def off(cls) -> Randomization:
+        """Every factor off: the start for a randomization of one or two factors."""
+        return cls(**{f.name: None for f in fields(cls) if f.name not in _NOT_FACTORS})
+
+    @classmethod
+    def parse(cls, value: Any) -> Randomization | None:
+        """From the plain form a config or command line holds: None/false (off), true (the
+        defaults), a mapping of factors over the defaults (`"defaults": false` over none),
+        or a `Randomization`."""
+        if value is None or value is False:
+            return None
+        if value is True:
+            return cls()
+        if isinstance(value, Randomization):
+            return value
+        if not isinstance(value, Mapping):
+            raise ValueError(
+                'randomize is true, false, or a mapping of factors (e.g. {"friction": [0.5, '
+                f'1.25], "push": null}}), got {value!r}'
+            )
+        settings = dict(value)
+        defaults = settings.pop("defaults", True)
+        if not isinstance(defaults, bool):
+            raise ValueError(f"randomize defaults must be true or false, got {defaults!r}")
+        known = [f.name for f in fields(cls)]
+        unknown = sorted(set(settings) - set(known), key=str)
+        if unknown:
+            raise ValueError(
+                f"randomize has no factor(s) {unknown}; its factors: {', '.join(known)}"
+            )
+        base = cls() if defaults else cls.off()
+        return replace(base, **settings)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The plain form (lists, not tuples) that `parse` reads back, for JSON and manifests."""
+        plain = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in plain.items()}
+
+
+_NOT_FACTORS = ("per_geom_friction", "push_every")
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, int | float | np.floating | np.integer) and not isinstance(value, bool)
+
+
+def _pair(value: Any, name: str) -> tuple[float, float]:
+    if (
+        isinstance(value, str)
+        or not isinstance(value, Sequence)
+        or len(value) != 2
+        or not all(_real(v) and math.isfinite(v) for v in value)
+    ):
+        raise ValueError(f"randomize {name} must be [low, high], two finite numbers, got {value!r}")
+    return float(value[0]), float(value[1])
+
+
+def _check_range(config: Randomization, name: str, positive: bool, optional: bool = True) -> None:
+    value = getattr(config, name)
+    if value is None and optional:
+        return
+    low, high = _pair(value, name)
+    if low > high or (positive and low <= 0):
+        need = "0 < low <= high" if positive else "low <= high"
+        raise ValueError(f"randomize {name} must be [low, high] with {need}, got {value!r}")
+    object.__setattr__(config, name, (low, high))
+
+
+class Randomizer:
+    """A `Randomization` applied to one robot's MuJoCo model and data. The team calls it at
+    reset (`new_episode`, `perturb_start`) and every step (`delay`, `push`, `noise`); it keeps
+    the model's own values to scale from, and what it drew, to restore an episode exactly."""
+
+    def __init__(
+        self,
+        config: Randomization,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        control_timestep: float,
+        signals: Sequence[tuple[str, int]],
+        env_id: str,
+    ):
+        self.config, self._model, self._data = config, model, data
+        self._dt = control_timestep
+        free = [j for j in range(model.njnt) if int(model.jnt_type[j]) == _FREE]
+        self._base = int(model.jnt_bodyid[free[0]]) if len(free) == 1 else None
+        self._base_dof = int(model.jnt_dofadr[free[0]]) if len(free) == 1 else None
+        self._joint_dofs = np.array(
+            [model.jnt_dofadr[j] for j in range(model.njnt) if model.jnt_type[j] >= 2], dtype=int
+        )  # hinges and slides
+        self._joints = [j for j in range(model.njnt) if model.jnt_type[j] >= 2]
+        self._nominal = {
+            name: getattr(model, name).copy()
+            for name in ("geom_friction", "body_mass", "body_inertia", "body_ipos",
+                         "actuator_gainprm", "actuator_biasprm", "dof_damping", "dof_armature")
+        }  # fmt: skip
+        self._affine = model.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE)
+        if config.payload is not None and self._base is not None:
+            lightest = self._nominal["body_mass"][self._base] * (config.mass or (1.0, 1.0))[0]
+            if lightest + config.payload[0] <= 0:
+                raise ValueError(
+                    f"{env_id}: randomize payload {list(config.payload)} would leave the base "
+                    f"(mass {lightest:g} kg at its lightest) with no mass; raise its low end"
+                )
+        self._scratch = mujoco.MjData(model)  # mj_setConst's workspace
+        self._noise_index, self._noise_level = self._noise_table(signals, env_id)
+        self.draws: dict[str, Any] = {}
+        self._pending: list[np.ndarray] = []
+        self._next_push = math.inf
+
+    def _noise_table(self, signals, env_id: str) -> tuple[np.ndarray, np.ndarray]:
+        """Which entries of the observation source get noise, and how much."""
+        levels = self.config.noise or {}
+        names = [name for name, _ in signals]
+        if levels and levels != DEFAULT_NOISE:
+            unknown = sorted(set(levels) - set(names))
+            if unknown:
+                raise ValueError(
+                    f"{env_id}: randomize noise names signal(s) {unknown} the observation does "
+                    f"not have; its signals: {', '.join(names)}"
+                )
+        index, level, start = [], [], 0
+        for name, size in signals:
+            if levels.get(name, 0.0) > 0:
+                index += range(start, start + size)
+                level += [levels[name]] * size
+            start += size
+        return np.array(index, dtype=np.intp), np.array(level)
+
+    # ---------------------------------------------------------------- per episode
+    def new_episode(self, rng) -> None:
+        """Draw this episode's robot and apply it to the model (before the task's reset)."""
+        config, model = self.config, self._model
+        draws: dict[str, Any] = {}
+        if config.friction is not None:
+            count = model.ngeom if config.per_geom_friction else 1
+            draws["friction"] = rng.uniform(*config.friction, count)
+        if config.mass is not None:
+            draws["mass"] = rng.uniform(*config.mass, model.nbody)
+        if config.payload is not None and self._base is not None:
+            draws["payload"] = float(rng.uniform(*config.payload))
+        if config.com is not None and self._base is not None:
+            draws["com"] = rng.uniform(-config.com, config.com, 3)
+        if config.strength is not None:
+            draws["strength"] = rng.uniform(*config.strength, model.nu)
+        if config.damping is not None:
+            draws["damping"] = rng.uniform(*config.damping, len(self._joint_dofs))
+        if config.armature is not None:
+            draws["armature"] = rng.uniform(*config.armature, len(self._joint_dofs))
+        if config.latency is not None:
+            low, high = config.latency
+            draws["latency"] = low + min(int(rng.uniform(0, high - low + 1)), high - low)
+        self.draws = draws
+        self._apply(draws)
+        self._pending = []
+        self._next_push = self._push_interval(rng)
+
+    def _apply(self, draws: Mapping[str, Any]) -> None:
+        model, nominal = self._model, self._nominal
+        for name, values in nominal.items():
+            getattr(model, name)[:] = values
+        if "friction" in draws:
+            scale = np.asarray(draws["friction"])
+            model.geom_friction[:] = nominal["geom_friction"] * scale[:, None]
+        if "mass" in draws:
+            scale = np.asarray(draws["mass"])
+            scale[0] = 1.0  # the world body
+            model.body_mass[:] = nominal["body_mass"] * scale
+            model.body_inertia[:] = nominal["body_inertia"] * scale[:, None]
+        if "payload" in draws:
+            model.body_mass[self._base] += draws["payload"]
+        if "com" in draws:
+            model.body_ipos[self._base] = nominal["body_ipos"][self._base] + draws["com"]
+        if "strength" in draws:
+            scale = np.asarray(draws["strength"])
+            model.actuator_gainprm[:, 0] = nominal["actuator_gainprm"][:, 0] * scale
+            kp = nominal["actuator_biasprm"][:, 1] * scale
+            model.actuator_biasprm[:, 1] = np.where(self._affine, kp, model.actuator_biasprm[:, 1])
+        if "damping" in draws:
+            dofs = self._joint_dofs
+            model.dof_damping[dofs] = nominal["dof_damping"][dofs] * draws["damping"]
+        if "armature" in draws:
+            dofs = self._joint_dofs
+            model.dof_armature[dofs] = nominal["dof_armature"][dofs] * draws["armature"]
+        if any(k in draws for k in ("mass", "payload", "com", "armature")):
+            mujoco.mj_setConst(model, self._scratch)  # inertia-derived constants
+
+    def perturb_start(self, rng) -> None:
+        """Extra start-pose noise on every hinge and slide, kept inside each joint's range
+        (inside the physics' reset, after the task placed the robot)."""
+        if self.config.start is None:
+            return
+        model, data = self._model, self._data
+        shift = rng.uniform(-self.config.start, self.config.start, len(self._joints))
+        for joint, delta in zip(self._joints, shift, strict=True):
+            address = model.jnt_qposadr[joint]
+            value = data.qpos[address] + delta
+            if model.jnt_limited[joint]:
+                value = np.clip(value, *model.jnt_range[joint])
+            data.qpos[address] = value
+
+    def _push_interval(self, rng) -> float:
+        if self.config.push is None or self._base is None:
+            return math.inf
+        return float(rng.uniform(*self.config.push_every))
+
+    # ---------------------------------------------------------------- per step
+    def delay(self, action: np.ndarray) -> np.ndarray:
+        """The action the motors get now: the one sent `latency` steps ago (0 at the start)."""
+        steps = self.draws.get("latency", 0)
+        if not steps:
+            return action
+        if not self._pending:
+            self._pending = [np.zeros_like(action) for _ in range(steps)]
+        self._pending.append(action.copy())
+        return self._pending.pop(0)
+
+    def push(self, rng) -> None:
+        """A horizontal velocity kick on the floating base when its time has come."""
+        self._next_push -= self._dt
+        if self._next_push > 0:
+            return
+        self._next_push += self._push_interval(rng)
+        dof = self._base_dof
+        self._data.qvel[dof : dof + 2] += rng.uniform(-self.config.push, self.config.push, 2)
+        mujoco.mj_step1(self._model, self._data)  # velocity-dependent quantities anew
+
+    def noise(self, source: np.ndarray, rng) -> None:
+        """Add this step's observation noise to the observation source, in place."""
+        if len(self._noise_index):
+            source[self._noise_index] += self._noise_level * rng.uniform(
+                -1.0, 1.0, len(self._noise_index)
+            )
+
+    # ---------------------------------------------------------------- exact resume
+    def get_state(self) -> dict[str, Any]:
+        return {
+            "draws": {k: np.array(v, dtype=np.float64) for k, v in self.draws.items()},
+            "pending": [p.copy() for p in self._pending],
+            "next_push": self._next_push,
+        }
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        draws = {k: np.asarray(v, dtype=np.float64) for k, v in state["draws"].items()}
+        if "latency" in draws:
+            draws["latency"] = int(draws["latency"])
+        if "payload" in draws:
+            draws["payload"] = float(draws["payload"])
+        self.draws = draws
+        self._apply(draws)
+        self._pending = [np.asarray(p, dtype=np.float64) for p in state["pending"]]
+        self._next_push = float(state["next_push"])

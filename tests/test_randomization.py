@@ -1,0 +1,218 @@
+"""Domain randomization: each factor changes what it should, only when on; draws come from the
+env's seeded stream (same episodes at any worker count, exact resume); bad settings are
+refused naming the factor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import TINY
+from pettingzoo.test import parallel_api_test
+
+from mat_sdk import envs
+from mat_sdk.envs import Randomization
+from mat_sdk.recipes import with_examples
+from mat_sdk.trainer import Trainer
+
+with_examples()
+
+GO2 = "go2:walk"
+MODEL_FIELDS = ("geom_friction", "body_mass", "body_inertia", "body_ipos", "actuator_gainprm",
+                "actuator_biasprm", "dof_damping", "dof_armature")  # fmt: skip
+
+
+def _only(**factors) -> dict:
+    return {"defaults": False, **factors}
+
+
+def _model_values(team) -> dict[str, np.ndarray]:
+    model = team.physics.model.ptr
+    return {name: getattr(model, name).copy() for name in MODEL_FIELDS}
+
+
+def _changed(factors: dict, seed: int = 1) -> set[str]:
+    """The model fields an episode under `factors` changes from the plain robot's."""
+    plain, randomized = (
+        envs.make_team(GO2, seed=seed),
+        envs.make_team(GO2, seed=seed, randomize=_only(**factors)),
+    )
+    plain.reset(), randomized.reset()
+    before, after = _model_values(plain), _model_values(randomized)
+    return {name for name in MODEL_FIELDS if not np.array_equal(before[name], after[name])}
+
+
+@pytest.mark.parametrize(
+    ("factors", "fields"),
+    [
+        ({"friction": [0.5, 1.25]}, {"geom_friction"}),
+        ({"mass": [0.9, 1.1]}, {"body_mass", "body_inertia"}),
+        ({"payload": [1.0, 2.0]}, {"body_mass"}),
+        ({"com": 0.02}, {"body_ipos"}),
+        ({"strength": [0.8, 1.2]}, {"actuator_gainprm", "actuator_biasprm"}),
+        ({"damping": [0.8, 1.2]}, {"dof_damping"}),
+        ({"armature": [0.8, 1.2]}, {"dof_armature"}),
+        ({}, set()),
+    ],
+    ids=["friction", "mass", "payload", "com", "strength", "damping", "armature", "none"],
+)
+def test_each_model_factor_changes_its_own_fields_only(factors, fields):
+    assert _changed(factors) == fields
+
+
+def test_model_factors_scale_the_models_own_values_within_their_ranges():
+    plain = envs.make_team(GO2, seed=0)
+    team = envs.make_team(
+        GO2, seed=0, randomize=_only(friction=[0.5, 0.6], payload=[1.5, 2.0], strength=[1.1, 1.2])
+    )
+    nominal = _model_values(plain)
+    base = team._randomizer._base
+    for episode in range(5):
+        team.reset(seed=episode)
+        model = team.physics.model.ptr
+        scale = model.geom_friction / nominal["geom_friction"]
+        assert np.allclose(scale, scale[0, 0]) and 0.5 <= scale[0, 0] <= 0.6  # one global scale
+        added = model.body_mass[base] - nominal["body_mass"][base]
+        assert 1.5 <= added <= 2.0
+        kp = model.actuator_biasprm[:, 1] / nominal["actuator_biasprm"][:, 1]
+        assert np.allclose(model.actuator_gainprm[:, 0] / nominal["actuator_gainprm"][:, 0], kp)
+        assert ((kp >= 1.1) & (kp <= 1.2)).all()  # a position actuator's kp, in gain and bias
+        # the bias's damping term is the model's own
+        assert np.array_equal(model.actuator_biasprm[:, 2], nominal["actuator_biasprm"][:, 2])
+    team.reset(seed=0)
+    off = envs.make_team(GO2, seed=0, randomize=False)
+    off.reset(seed=0)
+    assert all(np.array_equal(v, nominal[k]) for k, v in _model_values(off).items())
+
+
+def test_latency_delays_the_action_the_motors_get_by_k_steps():
+    team = envs.make_team(GO2, seed=0, randomize=_only(latency=[2, 2]))
+    plain = envs.make_team(GO2, seed=0)
+    team.reset(), plain.reset()
+    ctrl = team.physics.data.ctrl
+    home_ctrl = plain._targets.targets(np.zeros(12))
+    actions = [np.full((4, 3), value) for value in (0.3, -0.2, 0.1, 0.4)]
+    sent = []
+    for action in actions:
+        team.advance(action)
+        sent.append(ctrl.copy())
+    assert np.allclose(sent[0], home_ctrl) and np.allclose(sent[1], home_ctrl)
+    assert np.allclose(sent[2], plain._targets.targets(actions[0].reshape(-1)))
+    assert np.allclose(sent[3], plain._targets.targets(actions[1].reshape(-1)))
+    # what the agents observe as their previous action is what they sent, not what arrived
+    last = team.wiring()["observation"]["source"]["last_action"]
+    assert np.allclose(team._source()[last[0] : last[1]], 0.4)
+
+
+def test_observation_noise_is_in_each_signals_units_and_only_on_the_sensed_observation():
+    team = envs.make_team(GO2, seed=0, randomize=_only(noise={"joint_pos": 0.01, "gyro": 0.2}))
+    sensed = team.reset()
+    clean = team.observe()
+    difference = np.abs(sensed - clean)
+    features = {
+        f["name"]: slice(f["start"], f["stop"]) for f in team.wiring()["observation"]["features"]
+    }
+    assert 0 < difference[:, features["joints.pos"]].max() <= 0.01
+    assert 0.01 < difference[:, features["gyro"]].max() <= 0.2
+    assert difference[:, features["joints.vel"]].max() == 0  # no noise on unnamed signals
+    assert difference[:, features["contacts"]].max() == 0
+    plain = envs.make_team(GO2, seed=0)
+    assert np.array_equal(plain.reset(), plain.observe())
+
+
+def test_pushes_kick_the_base_and_start_noise_moves_the_joints():
+    pushed = envs.make_team(GO2, seed=0, randomize=_only(push=1.0, push_every=[0.1, 0.1]))
+    plain = envs.make_team(GO2, seed=0)
+    pushed.reset(), plain.reset()
+    for _ in range(4):
+        pushed.advance(np.zeros((4, 3))), plain.advance(np.zeros((4, 3)))
+    speed = [np.abs(t.physics.data.qvel[:2]).max() for t in (pushed, plain)]
+    assert speed[0] > 0.2 > speed[1]
+    started = envs.make_team(GO2, seed=0, randomize=_only(start=0.05))
+    plain.reset(seed=4), started.reset(seed=4)
+    shift = np.abs(started.physics.data.qpos[7:] - plain.physics.data.qpos[7:])
+    assert 0 < shift.max() <= 0.05 + 1e-12
+
+
+def test_a_randomized_episode_resumes_exactly_from_its_state():
+    team = envs.make_team(GO2, seed=2, randomize=True)
+    rng = np.random.default_rng(0)
+    team.reset()
+    for _ in range(30):
+        team.advance(rng.uniform(-1, 1, (4, 3)))
+    state = team.get_state()
+    actions = rng.uniform(-1, 1, (40, 4, 3))
+    straight = [team.advance(a)[0] for a in actions]
+    other = envs.make_team(GO2, seed=9, randomize=True)
+    other.reset()
+    other.set_state(state)
+    again = [other.advance(a)[0] for a in actions]
+    np.testing.assert_array_equal(np.array(straight), np.array(again))
+
+
+def test_same_seed_same_randomized_episodes_at_any_worker_count():
+    def run(workers):
+        with envs.make_vec(GO2, num_envs=3, workers=workers, seed=5, episode_limit=15,
+                           randomize=True) as vec:  # fmt: skip
+            trace = [vec.reset()]
+            rng = np.random.default_rng(0)
+            for _ in range(35):
+                obs, reward, *_ = vec.step(rng.uniform(-1, 1, (3, 4, 3)))
+                trace += [obs.reshape(-1), reward]
+            return np.concatenate([np.ravel(t) for t in trace])
+
+    local, two = run(0), run(2)
+    assert np.array_equal(local, two)
+    other_seed = envs.make_vec(GO2, num_envs=3, seed=6, randomize=True)
+    assert not np.array_equal(other_seed.reset().reshape(-1), local[: other_seed.reset().size])
+
+
+def test_a_randomized_env_passes_pettingzoos_parallel_api_test():
+    parallel_api_test(envs.make(GO2, seed=0, randomize=True), num_cycles=40)
+
+
+def test_a_randomized_training_run_resumes_exactly_and_records_its_randomization(tmp_path):
+    randomize = {"latency": [0, 2], "push_every": [0.2, 0.4]}
+    options = {**TINY, "num_envs": 2, "rollout_length": 20, "env_options": {"randomize": randomize}}
+    with Trainer(GO2, out_dir=tmp_path / "a", **options) as trainer:
+        trainer.learn(40, progress_bar=False)
+        trainer.save(tmp_path / "half.pt")
+        trainer.learn(80, progress_bar=False)
+        straight = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
+    with Trainer.load(tmp_path / "half.pt", out_dir=tmp_path / "b", trust_env_code=True) as again:
+        assert again.config.env_options["randomize"]["latency"] == [0, 2]
+        again.learn(80, progress_bar=False)
+        for name, value in again.policy.state_dict().items():
+            assert np.array_equal(value.numpy(), straight[name].numpy()), name
+
+
+def test_from_mjcf_takes_a_randomization_and_the_env_option_overrides_it():
+    import go2
+
+    spec = envs.from_mjcf(
+        go2.MODELS / "scene_mjx.xml", go2.LAYOUT, go2.REWARD, observation=go2.walk().observation,
+        randomize={"payload": [0.5, 1.0]},
+    )  # fmt: skip
+    assert spec.build().randomization.payload == (0.5, 1.0)
+    assert spec.build(randomize=False).randomization is None
+    assert spec.build(randomize={"defaults": False, "mass": [1, 1.1]}).randomization.payload is None
+    assert Randomization.parse(Randomization().to_dict()) == Randomization()
+
+
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ({"frction": [0.5, 1]}, r"no factor\(s\) \['frction'\]; its factors: friction"),
+        ({"friction": [1.2, 0.5]}, "friction must be \\[low, high\\] with 0 < low <= high"),
+        ({"friction": 0.5}, "friction must be \\[low, high\\], two finite numbers"),
+        ({"latency": [0, 1.5]}, "latency is \\[low, high\\] control steps, whole numbers"),
+        ({"push": -1}, "push must be a number >= 0 or null"),
+        ({"noise": {"joint_pos": "high"}}, "noise maps signal names to levels"),
+        ({"noise": {"lidar": 0.1}}, r"noise names signal\(s\) \['lidar'\].*its signals: joint_pos"),
+        ({"payload": [-20, 0]}, "payload \\[-20.0, 0.0\\] would leave the base"),
+        ("lots", "randomize is true, false, or a mapping of factors"),
+        ({"defaults": "no"}, "randomize defaults must be true or false"),
+    ],
+)
+def test_bad_randomizations_are_refused_naming_the_factor(given, message):
+    with pytest.raises(ValueError, match=message):
+        envs.make_team(GO2, randomize=given)
