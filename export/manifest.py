@@ -68,6 +68,7 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
         "env_id": train["env"],  # with the faults and options the policy was trained under
         "env_faults": dict(train.get("faults") or {}),
         "env_options": dict(train.get("env_options") or {}),
+        "randomization": env.get("randomization"),  # null: trained without
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
         if cfg.algo == "mat"
         else [],

@@ -59,6 +59,10 @@ def training_payload(
                 "act_dim": env.action_width,
                 "action_low": -1.0,
                 "action_high": 1.0,
+                # the domain randomization trained under (the env option's or the env's own)
+                "randomization": (
+                    env.randomization.to_dict() if getattr(env, "randomization", None) else None
+                ),
             },
         },
         "model": {k: v.cpu() for k, v in policy.state_dict().items()},

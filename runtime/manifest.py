@@ -87,6 +87,7 @@ SCHEMA: dict[str, Any] = {
     "env_id": optional(string),
     "env_faults": optional(mapping),
     "env_options": optional(mapping),
+    "randomization": optional(mapping),
     "graphs": mapping,
 }
 GRAPH_SCHEMA: dict[str, Any] = {
@@ -96,7 +97,12 @@ GRAPH_SCHEMA: dict[str, Any] = {
     "opset": integer(),
     "agents": optional(integer()),
 }
-OPTIONAL = {"env_id", "env_faults", "env_options"}  # absent from bundles of early versions
+OPTIONAL = {
+    "env_id",
+    "env_faults",
+    "env_options",
+    "randomization",
+}  # absent from bundles of early versions
 GRAPH_OPTIONAL = {"agents"}
 
 

@@ -106,6 +106,8 @@ class Policy:
         # the robot it was trained on: `mat_sdk.envs.make_team(env_id, env_faults, **env_options)`
         self.env_faults: dict[str, str] = manifest.get("env_faults", {})
         self.env_options: dict[str, Any] = manifest.get("env_options", {})
+        # the domain randomization it was trained under (`mat_sdk.envs.Randomization`), or None
+        self.randomization: dict[str, Any] | None = manifest.get("randomization")
         self.obs_dim: int = int(manifest["obs_dim"])
         self.action_type: str = action["type"]
         self.action_size: int = int(action["size"])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from helpers import TINY
 from pettingzoo.test import parallel_api_test
 
@@ -216,3 +217,19 @@ def test_from_mjcf_takes_a_randomization_and_the_env_option_overrides_it():
 def test_bad_randomizations_are_refused_naming_the_factor(given, message):
     with pytest.raises(ValueError, match=message):
         envs.make_team(GO2, randomize=given)
+
+
+def test_the_checkpoint_and_the_bundle_record_the_randomization(tmp_path):
+    from mat_export import export
+    from mat_runtime import Policy
+
+    with Trainer(GO2, **{**TINY, "env_options": {"randomize": {"payload": [0, 1]}}}) as trainer:
+        trainer.learn(20, progress_bar=False)
+        checkpoint = trainer.save(tmp_path / "go2.pt")
+    export(checkpoint, tmp_path / "onnx", agent_counts=(4,), trust_env_code=True)
+    recorded = Policy.load(tmp_path / "onnx").randomization
+    assert Randomization.parse(recorded) == Randomization(payload=(0.0, 1.0))
+    with Trainer(GO2, **TINY) as plain:
+        plain.learn(20, progress_bar=False)
+        saved = torch.load(plain.save(tmp_path / "plain.pt"), weights_only=True)
+    assert saved["config"]["env"]["randomization"] is None

@@ -176,6 +176,7 @@ class VecTeam:
         probe = make_team(seed)
         for name in _TEAM_ATTRIBUTES:
             setattr(self, name, getattr(probe, name))
+        self.randomization = getattr(probe, "randomization", None)  # robots' only
         sizes = {
             "n": self.n_agents,
             "obs": self.obs_dim,
