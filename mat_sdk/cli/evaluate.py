@@ -24,22 +24,41 @@ from mat_sdk.cli.common import fault_option, parse_faults, parse_settings, trust
     "--env-option", "env_options", multiple=True, metavar="KEY=VALUE",
     help="Change an env option for this evaluation (JSON value), e.g. command=[0.7,0,0].",
 )  # fmt: skip
+@click.option(
+    "--sweep", metavar="FACTOR=VALUES",
+    help="Evaluate at each value of one randomization factor, the rest nominal: "
+    "VALUES is low:high:count or a list, e.g. friction=0.4:1.2:5, payload=0,1,2, latency=0,1,2.",
+)  # fmt: skip
+@click.option("--plot", type=click.Path(dir_okay=False), help="With --sweep: plot it to FILE.png.")
 @trust_option()
 @user_errors
 def evaluate(
-    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, trust_env_code
-) -> None:
+    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, plot,
+    trust_env_code,
+) -> None:  # fmt: skip
     """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default),
     episodes that ended early (a robot's fall), and a floating-base robot's forward speed.
+
+    Robustness: `--env-option 'randomize=true'` evaluates under the default randomization
+    (or a mapping of factors); `--sweep` holds one factor at each value in turn (a scale for
+    friction, mass, strength, damping, armature; kg of payload; control steps of latency) and
+    prints a table per value.
 
     \b
     Examples:
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
       mat eval runs/go2/checkpoint.pt --env-option 'command=[0.7,0,0]' --trust-env-code
+      mat eval runs/go2/checkpoint.pt --sweep friction=0.4:1.2:5 --plot friction.png
     """
     from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
 
     loaded = CheckpointPolicy.from_checkpoint(checkpoint)
+    if plot and not sweep:
+        raise click.UsageError("--plot draws a sweep: give --sweep FACTOR=VALUES too")
+    if sweep:
+        _sweep(loaded, sweep, plot, episodes, seed, trust_env_code, env_id, faults, stochastic,
+               video, env_options)  # fmt: skip
+        return
     result = evaluate_episodes(
         loaded,
         episodes,
@@ -55,3 +74,22 @@ def evaluate(
     click.echo(f"{name}: {result.summary()}")
     if video:
         click.echo(f"video: {video}")
+
+
+def _sweep(loaded, sweep, plot, episodes, seed, trust, env_id, faults, stochastic, video, options):
+    from mat_sdk import robustness
+
+    for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
+                        (video, "--video")):  # fmt: skip
+        if given:
+            raise click.UsageError(f"--sweep evaluates the checkpoint's own robot; drop {name}")
+    factor, sep, values = sweep.partition("=")
+    if not sep:
+        raise click.BadParameter(f"{sweep!r}: use FACTOR=VALUES", param_hint="--sweep")
+    points = robustness.sweep(
+        loaded, factor, robustness.parse_values(values), episodes, seed, trust,
+        **parse_settings(options, param_hint="--env-option"),
+    )  # fmt: skip
+    click.echo(robustness.table(points, factor))
+    if plot:
+        click.echo(f"plot: {robustness.plot({'policy': [points]}, factor, plot)}")

@@ -343,3 +343,19 @@ class Randomizer:
         self._apply(draws)
         self._pending = [np.asarray(p, dtype=np.float64) for p in state["pending"]]
         self._next_push = float(state["next_push"])
+
+
+SWEEPABLE = ("friction", "mass", "payload", "com", "strength", "damping", "armature", "start",
+             "latency", "push")  # fmt: skip
+
+
+def setting(factor: str, value: float) -> Randomization:
+    """The nominal robot with one factor held at `value` (a point of a robustness sweep): a
+    scale for friction, mass, strength, damping, armature; kg of payload; control steps of
+    latency; and the largest centre-of-mass offset (m), start noise (in each joint's units) or
+    push (m/s), each drawn up to that."""
+    if factor not in SWEEPABLE:
+        raise ValueError(f"cannot sweep {factor!r}; sweepable factors: {', '.join(SWEEPABLE)}")
+    if factor in ("com", "start", "push"):
+        return replace(Randomization.off(), **{factor: value})
+    return replace(Randomization.off(), **{factor: (value, value)})
