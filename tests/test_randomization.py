@@ -233,3 +233,23 @@ def test_the_checkpoint_and_the_bundle_record_the_randomization(tmp_path):
         plain.learn(20, progress_bar=False)
         saved = torch.load(plain.save(tmp_path / "plain.pt"), weights_only=True)
     assert saved["config"]["env"]["randomization"] is None
+
+
+def test_mamujoco_robots_take_the_same_randomization_and_resume_exactly():
+    plain = envs.make_team("mamujoco:Ant-4x2", seed=0)
+    team = envs.make_team("mamujoco:Ant-4x2", seed=0, randomize={"noise": {"obs": 0.01}})
+    model = team._env.single_agent_env.unwrapped.model
+    nominal = plain._env.single_agent_env.unwrapped.model.body_mass.copy()
+    team.reset(), plain.reset()
+    assert not np.array_equal(model.body_mass, nominal)  # masses and the payload on the torso
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        team.advance(rng.uniform(-1, 1, (4, 2)))
+    state = team.get_state()
+    actions = rng.uniform(-1, 1, (30, 4, 2))
+    straight = [team.advance(a)[0] for a in actions]
+    other = envs.make_team("mamujoco:Ant-4x2", seed=7, randomize={"noise": {"obs": 0.01}})
+    other.reset()
+    other.set_state(state)
+    np.testing.assert_array_equal(np.array(straight), [other.advance(a)[0] for a in actions])
+    parallel_api_test(envs.make("mamujoco:HalfCheetah-6x1", seed=0, randomize=True), num_cycles=20)

@@ -36,6 +36,7 @@ from mat_sdk.envs.base import (
     position_features,
     render_failed,
 )
+from mat_sdk.envs.randomization import Randomization, Randomizer
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
@@ -94,6 +95,7 @@ class MaMuJoCoTeam(ArrayTeam):
         episode_limit: int | None = None,
         position: str | None = None,
         pad_agents: int | None = None,
+        randomize: bool | Mapping | Randomization | None = None,
     ):
         # Its import prints a notice about Adroit envs, which this SDK never uses.
         with contextlib.redirect_stderr(io.StringIO()):
@@ -141,6 +143,14 @@ class MaMuJoCoTeam(ArrayTeam):
         self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
         self._steps = 0
+        self.randomization = Randomization.parse(randomize)
+        self._randomizer = None
+        if self.randomization is not None:  # its observation is one signal, "obs"
+            physics = self._env.single_agent_env.unwrapped
+            self._randomizer = Randomizer(
+                self.randomization, physics.model, physics.data, self.control_timestep,
+                [("obs", self._real * self._raw_obs_width)], env_id,
+            )  # fmt: skip
 
     def _padding(self, pad_agents: int | None) -> list[str]:
         """The names of the padding agents `pad_agents` asks for (none if None); sets masks."""
@@ -163,7 +173,20 @@ class MaMuJoCoTeam(ArrayTeam):
             seed, self._seed = self._seed, None  # the first reset takes the constructor's seed
         obs, _ = self._env.reset(seed=seed)
         self._steps = 0
-        return self._pack(obs)
+        if self._randomizer is not None:  # the robot of this episode (start noise: the env's own)
+            self._randomizer.new_episode(self._random())
+        return self._sensed(obs)
+
+    def _random(self) -> np.random.Generator:
+        return self._env.single_agent_env.unwrapped.np_random
+
+    def _sensed(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        packed = self._pack(obs)
+        if self._randomizer is not None:
+            raw = packed[: self._real, : self._raw_obs_width].reshape(-1).astype(np.float64)
+            self._randomizer.noise(raw, self._random())
+            packed[: self._real, : self._raw_obs_width] = raw.reshape(self._real, -1)
+        return packed
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         actions = np.clip(actions, -1.0, 1.0) * self._action_mask  # faults zero their entries
@@ -171,13 +194,18 @@ class MaMuJoCoTeam(ArrayTeam):
             name: actions[row, : self.action_widths[row]]
             for row, name in enumerate(self.possible_agents)  # padding's actions are dropped
         }
+        if self._randomizer is not None:  # a push now; the motors get a late action
+            self._randomizer.push(self._random())
+            late = self._randomizer.delay(actions)
+            per_agent = {name: late[row, : self.action_widths[row]]
+                         for row, name in enumerate(self.possible_agents)}  # fmt: skip
         physics = self._env.single_agent_env.unwrapped
         data, substep = physics.data, physics.model.opt.timestep
         time_before = data.time
         obs, rewards, terminations, truncations, _ = self._env.step(per_agent)
         self._steps += 1
         first = self.possible_agents[0]
-        packed, reward = self._pack(obs), float(rewards[first])
+        packed, reward = self._sensed(obs), float(rewards[first])
         if diverged(data, time_before, self.control_timestep, substep, reward):
             packed, reward = end_diverged(self.env_id, self._steps, packed)
             return packed, reward, False, True
@@ -259,6 +287,7 @@ class MaMuJoCoTeam(ArrayTeam):
             "physics": physics,
             "random": env.np_random.bit_generator.state,
             "steps": self._steps,
+            **({"randomizer": self._randomizer.get_state()} if self._randomizer else {}),
         }
 
     def set_state(self, state: dict) -> None:
@@ -270,6 +299,8 @@ class MaMuJoCoTeam(ArrayTeam):
         env.np_random.bit_generator.state = state["random"]
         self._steps = int(state["steps"])
         self._seed = None
+        if self._randomizer is not None:
+            self._randomizer.set_state(state["randomizer"])
         mujoco.mj_forward(env.model, env.data)
 
     def state(self) -> np.ndarray:
