@@ -53,6 +53,40 @@ def single_step_table(robots=ROBOTS, seconds: float = 1.0) -> list[dict]:
     return rows
 
 
+RANDOMIZED = ("cheetah-6x1", "quadruped-4x3", "go2:walk", "mamujoco:Ant-4x2")
+
+
+def randomization_table(robots=RANDOMIZED, seconds: float = 1.0) -> list[dict]:
+    """Per robot: our array step (resets included) plain vs with every randomization factor
+    at its default range, side by side."""
+    from mat_sdk.recipes import with_examples
+
+    with_examples()  # go2:walk lives in examples/
+    rows = []
+    for env_id in robots:
+        plain, randomized = (envs.make_team(env_id, seed=0, randomize=r) for r in (False, True))
+        rng = np.random.default_rng(0)
+        actions = rng.uniform(-1, 1, (plain.n_agents, plain.action_width))
+        for team in (plain, randomized):
+            team.reset(seed=0)
+        times = compare(
+            {
+                "off": lambda t=plain, a=actions: _step_or_reset(t, a),
+                "on": lambda t=randomized, a=actions: _step_or_reset(t, a),
+            },
+            seconds,
+        )
+        rows.append(
+            {
+                "env": env_id,
+                "randomization off (µs)": f"{times['off'] * 1e6:.1f}",
+                "on (µs)": f"{times['on'] * 1e6:.1f}",
+                "on / off": f"{times['on'] / times['off']:.2f}x",
+            }
+        )
+    return rows
+
+
 def _step_or_reset(team, actions) -> None:
     _, _, terminated, truncated = team.step(actions)
     if terminated or truncated:
@@ -124,4 +158,7 @@ def _burn(iterations: int) -> int:
 
 def main(seconds: float = 1.0) -> None:
     print_table(single_step_table(seconds=seconds), "One control step, single process")
+    print_table(
+        randomization_table(seconds=seconds), "One control step, domain randomization off vs on"
+    )
     print_table(vector_table(seconds=6 * seconds), "Vectorised stepping, side by side")
