@@ -512,3 +512,14 @@ def test_an_installed_package_registers_ids_that_mat_envs_lists(tmp_path):
         env=environment, capture_output=True, text=True,
     )  # fmt: skip
     assert built.stdout.strip() == "['shoulder', 'forearm']", built.stderr
+
+
+def test_a_fixed_base_arms_first_joint_is_observed_through_its_encoder():
+    """The shoulder hangs from the world like a floating base, but it is driven: on hardware
+    its encoder reads it, so the observation has all seven joints of each arm."""
+    team = envs.make_team("bimanual:reach", seed=0)
+    team.reset()
+    features = {f["name"]: f["stop"] - f["start"] for f in team.wiring()["observation"]["features"]}
+    assert features["joints.pos"] == features["joints.vel"] == 7
+    assert team.wiring()["observation"]["signals"]["joint_pos"][0] == "left_shoulder_pan_joint"
+    assert features["sensor.left_reach"] == features["sensor.right_reach"] == 3

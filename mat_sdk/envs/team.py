@@ -301,7 +301,10 @@ class RobotTeam(ArrayTeam):
         """What the robot's hardware measures: every non-root joint's position and velocity
         (encoders), then the `Observation`'s whole-robot signals, then the previous action."""
         model, data = self._model, self._data
-        roots = set(root_joints(model))
+        # encoders: every hinge and slide but a floating base's (a fixed-base arm's first
+        # joint hangs from the world too, and is measured like the others when it is driven)
+        driven = {j for a in range(model.nu) for j in actuator_joints(model, a)}
+        roots = set(root_joints(model)) - driven
         self._joints = [j for j in range(model.njnt) if j not in roots and model.jnt_type[j] >= 2]
         qpos_of = np.array([model.jnt_qposadr[j] for j in self._joints], dtype=np.intp)
         dof_of = np.array([model.jnt_dofadr[j] for j in self._joints], dtype=np.intp)
@@ -322,8 +325,8 @@ class RobotTeam(ArrayTeam):
         shared = {signal.name: (signal.name, list(range(signal.size))) for signal in robot}
         if self.spec.observation.last_action:
             signals.append(self._last_action_signal())
-        joint = ("joint_pos", lambda j: [slot[j]])
-        velocity = ("joint_vel", lambda j: [slot[j]])
+        joint = ("joint_pos", lambda j: [slot[j]] if j in slot else [])  # no encoder: left out
+        velocity = ("joint_vel", lambda j: [slot[j]] if j in slot else [])
         return signals, joint, velocity, shared
 
     def _last_action_signal(self) -> Signal:

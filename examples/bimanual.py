@@ -1,0 +1,77 @@
+"""Two arms, two agents: PR2 arms (Gymnasium's Pusher arm, twice) each reaching a target.
+
+    PYTHONPATH=examples mat train bimanual:reach --steps 1000000 --out runs/bimanual
+
+Each arm is an agent that drives its seven joints through a PD layer on the arm's torque
+motors (joint targets around the start pose). Every episode places a target in front of each
+arm; an agent observes its own joints (encoders) and where both targets are from each hand
+(`left_reach`, `right_reach`: a camera or the arm's kinematics would give them). The reward
+is minus the two hands' distances to their targets, in metres; a reach succeeds when the hand
+ends the episode within 2 cm of its target (`SUCCESS`).
+
+`robots/pr2_arms/` holds the model, built from Gymnasium's MIT-licensed pusher_v5.xml (its
+license beside it).
+"""
+
+from pathlib import Path
+
+import numpy as np
+from dm_control import mujoco
+from dm_control.rl import control
+from dm_control.suite import base
+
+from mat_sdk import envs
+
+MODEL = Path(__file__).parent / "robots" / "pr2_arms" / "pr2_arms.xml"
+JOINTS = ("shoulder_pan", "shoulder_lift", "upper_arm_roll", "elbow_flex", "forearm_roll",
+          "wrist_flex", "wrist_roll")  # fmt: skip
+ARMS = {"left": 0.6, "right": -0.6}  # each arm's shoulder, y in metres
+LAYOUT = {arm: [f"{arm}_{joint}" for joint in JOINTS] for arm in ARMS}
+REACH = ("left_reach", "right_reach")  # each target in its hand's frame (MJCF sensors)
+TARGETS = {"x": (0.45, 0.8), "y": (-0.25, 0.25), "z": (-0.2, 0.1)}  # around each shoulder's y
+SUCCESS = 0.02  # m
+START_NOISE = 0.1  # rad on each joint at the start, inside its range
+SUBSTEPS = 5  # 10 ms physics steps: 20 Hz control
+
+
+class Reach(base.Task):
+    """Targets placed per episode in front of each arm; reward: minus the hands' distances."""
+
+    def initialize_episode(self, physics) -> None:
+        model, data = physics.model.ptr, physics.data.ptr
+        noise = self.random.uniform(-START_NOISE, START_NOISE, model.nq)
+        data.qpos[:] = np.clip(noise, model.jnt_range[:, 0], model.jnt_range[:, 1])
+        data.qvel[:] = 0.0
+        for arm, shoulder in ARMS.items():
+            x, y, z = (self.random.uniform(*TARGETS[axis]) for axis in "xyz")
+            physics.named.model.geom_pos[f"{arm}_target"] = (x, shoulder + y, z)
+        super().initialize_episode(physics)
+
+    def get_observation(self, physics) -> dict:
+        return {"reach": distances(physics)}
+
+    def get_reward(self, physics) -> float:
+        return -float(distances(physics).sum())
+
+
+def distances(physics) -> np.ndarray:
+    """Each hand's distance to its target (m), left then right."""
+    return np.array([np.linalg.norm(physics.named.data.sensordata[name]) for name in REACH])
+
+
+def environment(seed: int | None) -> control.Environment:
+    physics = mujoco.Physics.from_xml_path(str(MODEL))
+    return control.Environment(physics, Reach(random=seed), n_sub_steps=SUBSTEPS)
+
+
+def reach() -> envs.RobotSpec:
+    """Two seven-joint arms reaching targets, 100 steps (5 s) per episode."""
+    return envs.from_dm_control(
+        environment,
+        LAYOUT,
+        observation=envs.Observation(sensors=REACH, last_action=False),
+        actions=envs.JointTargets(scale=1.0, kp=10.0, kd=1.0),
+        episode_limit=100,
+        env_id="bimanual:reach",
+        description="two PR2 arms, one agent each, reaching a target per arm",
+    )
