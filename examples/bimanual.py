@@ -4,8 +4,8 @@
 
 Each arm is an agent that drives its seven joints through a PD layer on the arm's torque
 motors (joint targets around the start pose). Every episode places a target in front of each
-arm; an agent observes its own joints (encoders) and where both targets are from each hand
-(`left_reach`, `right_reach`: a camera or the arm's kinematics would give them). The reward
+arm; an agent observes its own joints (encoders) and where both hands and both targets are
+(world positions: the arms' kinematics give the hands, a camera the targets). The reward
 is minus the two hands' distances to their targets, in metres; a reach succeeds when the hand
 ends the episode within 2 cm of its target (`SUCCESS`).
 
@@ -27,7 +27,7 @@ JOINTS = ("shoulder_pan", "shoulder_lift", "upper_arm_roll", "elbow_flex", "fore
           "wrist_flex", "wrist_roll")  # fmt: skip
 ARMS = {"left": 0.6, "right": -0.6}  # each arm's shoulder, y in metres
 LAYOUT = {arm: [f"{arm}_{joint}" for joint in JOINTS] for arm in ARMS}
-REACH = ("left_reach", "right_reach")  # each target in its hand's frame (MJCF sensors)
+SENSORS = ("left_hand", "left_target", "right_hand", "right_target")  # MJCF framepos
 TARGETS = {"x": (0.45, 0.8), "y": (-0.25, 0.25), "z": (-0.2, 0.1)}  # around each shoulder's y
 SUCCESS = 0.02  # m
 START_NOISE = 0.1  # rad on each joint at the start, inside its range
@@ -48,7 +48,7 @@ class Reach(base.Task):
         super().initialize_episode(physics)
 
     def get_observation(self, physics) -> dict:
-        return {"reach": distances(physics)}
+        return {"distances": distances(physics)}
 
     def get_reward(self, physics) -> float:
         return -float(distances(physics).sum())
@@ -56,7 +56,10 @@ class Reach(base.Task):
 
 def distances(physics) -> np.ndarray:
     """Each hand's distance to its target (m), left then right."""
-    return np.array([np.linalg.norm(physics.named.data.sensordata[name]) for name in REACH])
+    sensed = physics.named.data.sensordata
+    return np.array(
+        [np.linalg.norm(sensed[f"{arm}_target"] - sensed[f"{arm}_hand"]) for arm in ARMS]
+    )
 
 
 def environment(seed: int | None) -> control.Environment:
@@ -69,7 +72,7 @@ def reach() -> envs.RobotSpec:
     return envs.from_dm_control(
         environment,
         LAYOUT,
-        observation=envs.Observation(sensors=REACH, last_action=False),
+        observation=envs.Observation(sensors=SENSORS, last_action=False),
         actions=envs.JointTargets(scale=1.0, kp=10.0, kd=1.0),
         episode_limit=100,
         env_id="bimanual:reach",

@@ -522,4 +522,4 @@ def test_a_fixed_base_arms_first_joint_is_observed_through_its_encoder():
     features = {f["name"]: f["stop"] - f["start"] for f in team.wiring()["observation"]["features"]}
     assert features["joints.pos"] == features["joints.vel"] == 7
     assert team.wiring()["observation"]["signals"]["joint_pos"][0] == "left_shoulder_pan_joint"
-    assert features["sensor.left_reach"] == features["sensor.right_reach"] == 3
+    assert features["sensor.left_hand"] == features["sensor.right_target"] == 3

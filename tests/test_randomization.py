@@ -4,13 +4,17 @@ refused naming the factor."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
-from helpers import TINY
+from click.testing import CliRunner
+from helpers import TINY, trained_like
 from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs
+from mat_sdk.cli import main
 from mat_sdk.envs import Randomization
 from mat_sdk.recipes import with_examples
 from mat_sdk.trainer import Trainer
@@ -253,3 +257,42 @@ def test_mamujoco_robots_take_the_same_randomization_and_resume_exactly():
     other.set_state(state)
     np.testing.assert_array_equal(np.array(straight), [other.advance(a)[0] for a in actions])
     parallel_api_test(envs.make("mamujoco:HalfCheetah-6x1", seed=0, randomize=True), num_cycles=20)
+
+
+@pytest.fixture(scope="module")
+def go2_checkpoint(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sweep") / "go2.pt"
+    with Trainer(GO2, **{**TINY, "env_options": {"episode_limit": 30}}) as trainer:
+        trainer.learn(20, progress_bar=False)
+        trained_like(trainer.policy)  # unit-gain weights: actions that differ visibly
+        return trainer.save(path)
+
+
+def test_mat_eval_sweeps_one_factor_and_plots_it(go2_checkpoint, tmp_path):
+    plot = tmp_path / "latency.png"
+    result = CliRunner().invoke(main, [
+        "eval", str(go2_checkpoint), "--sweep", "latency=0,2", "--episodes", "2",
+        "--plot", str(plot), "--trust-env-code",
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rows = re.findall(r"^\| (\d+) \| ([-\d,.]+) ± [\d,.]+ \| (\d) / 2 \| ([\d.]+) ±", result.output,
+                      re.MULTILINE)  # fmt: skip
+    assert [row[0] for row in rows] == ["0", "2"]
+    assert rows[0][1] != rows[1][1]  # two steps late, the same policy does differently
+    assert plot.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--sweep", "frction=0.4,1"], "cannot sweep 'frction'; sweepable factors: friction"),
+        (["--sweep", "latency"], "'latency': use FACTOR=VALUES"),
+        (["--sweep", "payload=0:2"], "sweep values '0:2': give low:high:count"),
+        (["--plot", "x.png"], "--plot draws a sweep: give --sweep FACTOR=VALUES too"),
+        (["--sweep", "payload=0,1", "--fault", "FR_hip_joint=zero"], "drop --fault"),
+    ],
+)
+def test_bad_sweeps_get_one_line_naming_the_problem(go2_checkpoint, arguments, message):
+    result = CliRunner().invoke(main, ["eval", str(go2_checkpoint), "--trust-env-code", *arguments])
+    assert result.exit_code != 0 and message in result.output, result.output
+    assert "Traceback" not in result.output
