@@ -57,7 +57,10 @@ def main(groups, episodes: int) -> None:
           "success | final distance (cm) |\n|---|---|---|---|---|---|")  # fmt: skip
     for group in groups:
         label, _, pattern = group.partition("=")
-        for path in sorted(glob.glob(pattern)):
+        paths = sorted(glob.glob(pattern))
+        if not paths:
+            raise click.BadParameter(f"{pattern!r} matches no checkpoint", param_hint="--group")
+        for path in paths:
             cells = []
             for randomize in (False, True):
                 distances = final_distances(path, episodes, randomize)
