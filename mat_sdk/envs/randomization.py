@@ -320,10 +320,9 @@ class Randomizer:
 
     def noise(self, source: np.ndarray, rng) -> None:
         """Add this step's observation noise to the observation source, in place."""
-        if len(self._noise_index):
-            source[self._noise_index] += self._noise_level * rng.uniform(
-                -1.0, 1.0, len(self._noise_index)
-            )
+        if len(self._noise_index):  # `random` is 3x faster than RandomState's `uniform`
+            draw = rng.random(len(self._noise_index))
+            source[self._noise_index] += 2.0 * self._noise_level * draw - self._noise_level
 
     # ---------------------------------------------------------------- exact resume
     def get_state(self) -> dict[str, Any]:
