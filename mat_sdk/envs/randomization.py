@@ -24,6 +24,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.trunk import Trunk
+
 Range = tuple[float, float]
 
 # Uniform noise of +- this much on each observed signal, in the signal's own units. The
@@ -38,7 +40,6 @@ DEFAULT_NOISE = {
     "qpos": 0.01,
     "qvel": 0.1,
 }
-_FREE = int(mujoco.mjtJoint.mjJNT_FREE)
 
 
 @dataclass(frozen=True)
@@ -175,13 +176,13 @@ class Randomizer:
     ):
         self.config, self._model, self._data = config, model, data
         self._dt = control_timestep
-        free = [j for j in range(model.njnt) if int(model.jnt_type[j]) == _FREE]
-        self._base = int(model.jnt_bodyid[free[0]]) if len(free) == 1 else None
-        self._base_dof = int(model.jnt_dofadr[free[0]]) if len(free) == 1 else None
-        self._joint_dofs = np.array(
-            [model.jnt_dofadr[j] for j in range(model.njnt) if model.jnt_type[j] >= 2], dtype=int
-        )  # hinges and slides
-        self._joints = [j for j in range(model.njnt) if model.jnt_type[j] >= 2]
+        try:  # a floating base: where payload, centre of mass and pushes act
+            trunk = Trunk(model)
+            self._base, self._base_dof = trunk.body, trunk.qvel
+        except ValueError:
+            self._base = self._base_dof = None
+        self._joints = [j for j in range(model.njnt) if model.jnt_type[j] >= 2]  # hinges, slides
+        self._joint_dofs = model.jnt_dofadr[self._joints]
         self._nominal = {
             name: getattr(model, name).copy()
             for name in ("geom_friction", "body_mass", "body_inertia", "body_ipos",
