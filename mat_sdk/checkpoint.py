@@ -94,6 +94,12 @@ def env_id(payload: dict[str, Any]) -> str:
 RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
 
 
+def recorded_training(payload: dict[str, Any]) -> dict[str, Any]:
+    """The `TrainConfig` fields a checkpoint records; a run from before recipes existed was
+    the paper's."""
+    return {"recipe": "paper", **payload["config"]["train"]}
+
+
 def training_options(
     payload: dict[str, Any], path: str | os.PathLike, given: dict[str, Any]
 ) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -101,7 +107,7 @@ def training_options(
     them: how to run it (`RESUME_OVERRIDES`); any other field given must be the checkpoint's
     own, since the task, model and hyperparameters are the run's. The one resume rule, for
     `Trainer.load` and `mat train --resume` alike. -> (fields, the overrides applied)."""
-    train = dict(payload["config"]["train"])
+    train = recorded_training(payload)
     if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
         raise CheckpointError(f"{path}: config.train names no env and algo")
     changed = {}

@@ -6,8 +6,8 @@
     trainer = Trainer.load("cheetah.pt")          # resumes exactly where it stopped
     actions = trainer.predict(obs)                # obs [n, obs_dim] or [B, n, obs_dim]
 
-The defaults are the paper's MA-MuJoCo recipe (docs/ALGORITHM.md); MAPPO gets its own
-(lr 5e-6 actor / 5e-3 critic, 5 epochs, clip 0.2) unless you set them.
+The hyperparameters start from a named recipe (`recipe="fast"`, the default, or "paper", the
+MAT paper's MA-MuJoCo recipe; `config.RECIPES`, docs/ALGORITHM.md); options override them.
 """
 
 from __future__ import annotations
@@ -317,7 +317,7 @@ class Trainer:
         `trust_env_code=True`.
         """
         payload = checkpoint.load(checkpoint_path)
-        train = dict(payload["config"]["train"])
+        train = checkpoint.recorded_training(payload)
         model = payload["config"]["model"]
         train.update({key: model[key] for key in ("n_embd", "n_head", "n_block")})
         train["attention_window"] = model.get("attention_window")  # absent before windows

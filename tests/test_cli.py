@@ -311,7 +311,8 @@ def test_resume_applies_how_to_run_and_refuses_what_to_train(tmp_path):
     resume = ["train", "hopper-2x2", "--steps", "80", "--out", str(out), "--resume", "--quiet"]
     for extra, field in (
         (["--num-envs", "8"], "num_envs=4; got num_envs=8"),
-        (["--set", "lr=0.1"], "lr=5e-05; got lr=0.1"),
+        (["--set", "lr=0.1"], "lr=0.0003; got lr=0.1"),
+        (["--recipe", "paper"], "recipe='fast'; got recipe='paper'"),
         (["--fault", "knee=zero"], "faults={}; got faults={'knee': 'zero'}"),
         (["--algo", "mat-dec"], "algo='mat'; got algo='mat-dec'"),
         (["--seed", "1"], "seed=0; got seed=1"),

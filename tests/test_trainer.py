@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,8 @@ from helpers import GAME
 
 from mat_sdk import checkpoint, envs, recipes
 from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
+
+DATA = Path(__file__).parent / "data"
 
 
 def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
@@ -237,6 +240,8 @@ def test_bad_input_gives_clear_errors(tmp_path):
         Trainer("cheetah-9x9", "mat", num_envs=1)
     with pytest.raises(ValueError, match="unknown training option"):
         Trainer("coordination-3", "mat", learning_rate=1.0)
+    with pytest.raises(ValueError, match="recipe must be one of paper, fast, got 'slow'"):
+        Trainer("coordination-3", "mat", recipe="slow")
     with pytest.raises(ValueError, match="rollout_backend must be one of torch, onnx, got 'jax'"):
         Trainer("coordination-3", "mat", rollout_backend="jax")  # refused before envs start
     for option, message in (
@@ -248,12 +253,13 @@ def test_bad_input_gives_clear_errors(tmp_path):
         ({"device": "tpu"}, "device must be cpu, cuda, cuda:N or auto, got 'tpu'"),
         ({"attention_window": 1}, "attention_window must be an integer >= 2 or null, got 1"),
         ({"attention_window": 4.5}, "attention_window must be an integer >= 2 or null, got 4.5"),
+        ({"recipe": "quick"}, "recipe must be one of paper, fast, got 'quick'"),
     ):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**option)
     accepted = TrainConfig(seed=np.int64(3), lr=np.float32(1e-4))  # numpy scalars are fine
     assert type(accepted.seed) is int and type(accepted.lr) is float  # (weights_only loads)
-    with Trainer("coordination-3", "mat", num_envs=2, rollout_length=5) as trainer:
+    with Trainer("coordination-3", "mat", recipe="paper", num_envs=2, rollout_length=5) as trainer:
         with pytest.raises(ValueError, match="num_minibatches 40 > env-steps per update 10"):
             trainer.learn(1_000)
         assert trainer.progress["steps"] == 0  # refused before any rollout
@@ -342,3 +348,28 @@ def test_progress_bar_shows_the_latest_finished_return_not_nan(capsys):
     per_step = [f"{m['reward_per_step']:.3g}" for m in metrics]
     assert list(dict.fromkeys(shown_rewards)) == list(dict.fromkeys(per_step))
     assert 0 < max(m["reward_per_step"] for m in metrics) <= 1  # dm_control rewards: 0..1
+
+
+def test_recipes_set_the_update_and_are_recorded(tmp_path):
+    """`fast` (the default) and `paper` set the update's shape; options override either; the
+    checkpoint records the recipe, and one from before recipes resumes as the paper's."""
+    fast, paper = TrainConfig.for_algo("mat"), TrainConfig.for_algo("mat", "paper")
+    assert (fast.recipe, fast.lr, fast.ppo_epochs, fast.num_minibatches) == ("fast", 3e-4, 5, 4)
+    assert (paper.recipe, paper.lr, paper.ppo_epochs, paper.num_minibatches) == (
+        "paper",
+        5e-5,
+        10,
+        40,
+    )
+    assert TrainConfig.for_algo("mat", "fast", lr=1e-3).lr == 1e-3
+    mappo = TrainConfig.for_algo("mappo", "fast")  # not measured yet: the paper's settings
+    assert (mappo.lr, mappo.critic_lr, mappo.num_minibatches) == (5e-6, 5e-3, 40)
+    with Trainer("coordination-3", "mat", num_envs=4, rollout_length=5) as trainer:
+        trainer.learn(20, progress_bar=False)
+        saved = trainer.save(tmp_path / "fast.pt")
+    assert checkpoint.load(saved)["config"]["train"]["recipe"] == "fast"
+    old = checkpoint.load(DATA / "mat-coordination3-5510455.pt")
+    assert "recipe" not in old["config"]["train"]  # written before recipes existed
+    with Trainer.load(DATA / "mat-coordination3-5510455.pt") as resumed:
+        assert resumed.config.recipe == "paper"
+        assert resumed.config.lr == old["config"]["train"]["lr"]

@@ -141,6 +141,7 @@ def main() -> None:
         parser.error(f"--report: no results in {table}; run without --report")
     pretrained = checkpoints.load(args.checkpoint)
     env_id = checkpoints.env_id(pretrained)
+    recipe = checkpoints.recorded_training(pretrained)["recipe"]  # scratch trains as it did
     if args.report:
         report(table, args.out / "fewshot.png", env_id)
         return
@@ -159,11 +160,13 @@ def main() -> None:
         table.write_text(",".join(FIELDS) + "\n")
     for seed in args.seeds:
         for joint in args.joints:
-            _run_cells(args, joint, seed, env_id, budget_steps, done, table)
+            _run_cells(args, joint, seed, env_id, recipe, budget_steps, done, table)
     report(table, args.out / "fewshot.png", env_id)
 
 
-def _run_cells(args, joint: str, seed: int, env_id: str, budget_steps, done: set, table: Path):
+def _run_cells(
+    args, joint: str, seed: int, env_id: str, recipe: str, budget_steps, done: set, table: Path
+):
     """Fine-tune and train from scratch with `joint` disabled, one seed, appending rows."""
     faults = {joint: "zero"}
     total = max(budget_steps)
@@ -181,7 +184,7 @@ def _run_cells(args, joint: str, seed: int, env_id: str, budget_steps, done: set
             zero = result.zero_shot
             rows.insert(0, [joint, "zero-shot", 0.0, 0, np.mean(zero), np.std(zero), seed])
         else:
-            with Trainer(env_id, "mat", faults=faults, seed=seed) as trainer:
+            with Trainer(env_id, "mat", recipe=recipe, faults=faults, seed=seed) as trainer:
                 trainer.learn(total, callback=callback, progress_bar=False)
         with table.open("a") as f:
             csv.writer(f).writerows(rows)

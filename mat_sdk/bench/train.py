@@ -1,8 +1,11 @@
-"""Training throughput with the paper's MuJoCo recipe, against an official-style update step.
+"""Training throughput: the update step against an official-style one, and the recipes side
+by side.
 
-Recipe: 40 envs x rollout 100 = 4,000 env-steps per update; 10 epochs x 40 minibatches of 100
-env-steps (all agents together) = 400 optimizer steps per update. Every update variant runs
-the same 40 minibatches, interleaved round by round.
+First table, the paper's recipe: 40 envs x rollout 100 = 4,000 env-steps per update; 10 epochs
+x 40 minibatches of 100 env-steps (all agents together) = 400 optimizer steps per update. Every
+update variant runs the same 40 minibatches, interleaved round by round.
+Second table, each recipe (`config.RECIPES`): one whole update of the same 4,000 env-steps as
+that recipe shapes it, and the env-steps/s it gives with the measured rollout.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from functools import partial
 import torch
 
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
+from mat_sdk.config import RECIPES, TrainConfig
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.processes import usable_cores
 from mat_sdk.timing import compare, print_table
@@ -52,6 +56,56 @@ def _keeping_subnormals(step):
     return run
 
 
+def _whole_update(trainer: Trainer, batch: dict[str, torch.Tensor]):
+    """One update as the trainer's config shapes it: epochs x minibatches over `batch`."""
+    cfg = trainer.config
+    size = batch["obs"].shape[0]
+    rows = size // cfg.num_minibatches
+
+    def run():
+        for _ in range(cfg.ppo_epochs):
+            permutation = torch.randperm(size, device=trainer.device)
+            for k in range(cfg.num_minibatches):
+                trainer.optimizer_step(batch, permutation[k * rows : (k + 1) * rows])
+        if trainer.device.type == "cuda":
+            torch.cuda.synchronize()
+
+    return run
+
+
+def _recipes(trainer: Trainer, batch, rollout_s: float, rounds: int, split: bool) -> None:
+    """The recipes side by side: a whole update each (and with one update worker where a core
+    is free), with the rollout measured above."""
+    twins: dict[str, Trainer] = {}
+    try:
+        for recipe in RECIPES:
+            settings = TrainConfig.for_algo("mat", recipe)
+            shape = {key: getattr(settings, key) for key in ("lr", "ppo_epochs", "num_minibatches")}
+            twins[recipe] = twin(trainer, batch, **shape)
+            if split:
+                twins[f"{recipe} + 1 update worker"] = twin(trainer, batch, 1, **shape)
+        updates = {name: _whole_update(copied, batch) for name, copied in twins.items()}
+        times = compare(updates, seconds=rounds * len(updates) * 2.0, rounds=rounds)
+        rows = []
+        for name, update_s in times.items():
+            cfg = twins[name].config
+            rows.append(
+                {
+                    "recipe": name,
+                    "epochs x minibatches": f"{cfg.ppo_epochs} x {cfg.num_minibatches}",
+                    "env-steps / minibatch": f"{batch['obs'].shape[0] // cfg.num_minibatches:,}",
+                    "update s / 4000 steps": f"{update_s:.2f}",
+                    "rollout s / 4000 steps": f"{rollout_s:.2f}",
+                    "env-steps/s": f"{4000 / (rollout_s + update_s):,.0f}",
+                    "vs paper": f"{times['paper'] / update_s:.2f}x update",
+                }
+            )
+        print_table(rows, f"Recipes side by side, {trainer.config.env}, {trainer.device}")
+    finally:
+        for copied in twins.values():
+            copied.gradients.close()
+
+
 def main(
     env_id: str = "cheetah-6x1",
     device: str = "cpu",
@@ -62,8 +116,9 @@ def main(
 ) -> None:
     options = {"torch_threads": threads} if threads else {}  # else the trainer's default
     trainer = Trainer(
-        env_id, "mat", num_envs=40, rollout_length=100, device=device, workers=workers, **options
-    )
+        env_id, "mat", recipe="paper", num_envs=40, rollout_length=100, device=device,
+        workers=workers, **options,
+    )  # fmt: skip
     twins: dict[str, Trainer] = {}
     try:
         trainer.rollout()  # warm up the obs normaliser and caches
@@ -136,6 +191,7 @@ def main(
             f"Training throughput, paper recipe, {env_id}, {trainer.device}, {threads} thread(s)"
         )
         print_table(rows, title)
+        _recipes(trainer, batch, rollout_s, rounds, split)
     finally:
         for copied in twins.values():
             copied.gradients.close()
