@@ -78,7 +78,7 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
     policy, normalizer, value_scale, obs_norm = _rebuild(payload)
     team = _check_env(payload, policy.cfg)
     cfg = policy.cfg
-    counts = (cfg.n_agents,) if cfg.algo == "mappo" else tuple(agent_counts)
+    counts = (cfg.n_agents,) if cfg.fixed_team else tuple(agent_counts)
     graphs = _export_graphs(policy, normalizer, value_scale, staging)
     written = manifest(payload, cfg, graphs, checkpoint_path)
     if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
@@ -165,9 +165,9 @@ def _dims() -> dict[str, Any]:
 def _export_graphs(policy, normalizer, value_scale, directory: Path) -> dict[str, dict]:
     """Export both graphs; returns their input/output names."""
     cfg, dims = policy.cfg, _dims()
-    batch, n = 3, cfg.n_agents if cfg.algo == "mappo" else 5  # trace with sizes >= 2
+    batch, n = 3, cfg.n_agents if cfg.fixed_team else 5  # trace with sizes >= 2
     obs = torch.randn(batch, n, cfg.obs_dim)
-    agents_dim = {} if cfg.algo == "mappo" else {1: dims["agents"]}
+    agents_dim = {} if cfg.fixed_team else {1: dims["agents"]}
     graphs = {}
     encoder = EncoderGraph(policy, normalizer, value_scale)
     graphs["encoder.onnx"] = _export(

@@ -59,8 +59,8 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "attention_window": cfg.attention_window,
         },
         "agents": {
-            "min": cfg.n_agents if cfg.algo == "mappo" else 1,
-            "max": cfg.n_agents if cfg.algo == "mappo" else None,
+            "min": cfg.n_agents if cfg.fixed_team else 1,
+            "max": cfg.n_agents if cfg.fixed_team else None,
             "trained": cfg.n_agents,
             "trained_counts": env.get("counts") or [cfg.n_agents],  # every count trained on
             "names": env.get("agents"),

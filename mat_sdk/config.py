@@ -26,8 +26,21 @@ ROLLOUT_BACKENDS = ("torch", "onnx")
 # tuned MA-MuJoCo recipes do: on a CPU the update is bound by the number of optimizer steps,
 # not by their size (docs/ALGORITHM.md has the search and its measurements).
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {"mappo": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2}},
-    # measured for MAT only: MAT-Dec and MAPPO keep the paper's settings under it
+    "paper": {
+        "mappo": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2},
+        # HARL's tuned MA-MuJoCo HAPPO (e.g. Walker2d 2x3): 5 epochs x 2 minibatches, lr 1e-3
+        # for actors and critic, clip 0.05, no entropy bonus, gradient norm 10
+        "happo": {
+            "lr": 1e-3,
+            "critic_lr": 1e-3,
+            "ppo_epochs": 5,
+            "num_minibatches": 2,
+            "clip": 0.05,
+            "entropy_coef": 0.0,
+            "max_grad_norm": 10.0,
+        },
+    },
+    # measured for MAT only: the others keep their paper's settings under it
     "fast": {"mat": {"lr": 3e-4, "ppo_epochs": 5, "num_minibatches": 4, "clip": 0.1}},
 }
 DEFAULT_RECIPE = "fast"
@@ -156,6 +169,11 @@ class TrainConfig:
             )
         if not all(isinstance(mode, str) for mode in self.faults.values()):
             raise ValueError(f"faults must map names to 'zero' or 'remove', got {self.faults!r}")
+        if self.algo == "happo" and (self.update_workers or self.compile):
+            raise ValueError(
+                "HAPPO updates its agents one after another in this process: update_workers "
+                "and compile do not apply to it; leave them at 0 and false"
+            )
         if self.recipe not in RECIPES:
             raise ValueError(f"recipe must be one of {', '.join(RECIPES)}, got {self.recipe!r}")
         if self.rollout_backend not in ROLLOUT_BACKENDS:

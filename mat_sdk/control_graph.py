@@ -33,7 +33,7 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from mat_sdk.model import MAPPO, MAT, UNAVAILABLE_LOGIT, PolicyNetwork
+from mat_sdk.model import HAPPO, MAPPO, MAT, UNAVAILABLE_LOGIT, PolicyNetwork
 
 OPSET = 24  # `Attention` with a KV cache
 LOOP_STEPS = (1, 8)  # agent steps per iteration of the any-count graph's `Loop`s
@@ -169,11 +169,12 @@ def build_decode(
         first = _first_attentions(policy, tokens[0])
         params = _decoder(g, rep, cfg, shift, agents, tokens, first)
     else:
-        if isinstance(policy, MAPPO):
+        if isinstance(policy, (MAPPO, HAPPO)):
             values = _mappo_values(g, x, cfg, value_fold)
         else:
             values = _encoder(g, x, cfg, value_fold)[1]
-        params = _decentralised_sample(g, _mlp(g, x, "mlp"), shift, discrete)
+        actor = _agent_actors(g, x, cfg) if isinstance(policy, HAPPO) else _mlp(g, x, "mlp")
+        params = _decentralised_sample(g, actor, shift, discrete)
     head = ["logits"] if discrete else ["mean", "std"]
     g.op("Identity", values, outputs=["values"])
     if not discrete:
@@ -265,6 +266,16 @@ def _mlp(g: GraphBuilder, x: str, prefix: str, **value_fold) -> str:
     x = g.gelu(g.linear(g.layer_norm(x, f"{prefix}.0"), f"{prefix}.1"))
     x = g.gelu(g.linear(g.layer_norm(x, f"{prefix}.3"), f"{prefix}.4"))
     return g.linear(g.layer_norm(x, f"{prefix}.6"), f"{prefix}.7", **value_fold)
+
+
+def _agent_actors(g: GraphBuilder, x: str, cfg) -> str:
+    """HAPPO: agent i's own MLP (`actors.i.mlp`) on its observation, side by side [B, n, A]."""
+    outputs = []
+    for i in range(cfg.n_agents):
+        start, end = g.const([i], "agent", np.int64), g.const([i + 1], "agent", np.int64)
+        mine = g.op("Slice", x, start, end, g.const([1], "axis", np.int64))
+        outputs.append(_mlp(g, mine, f"actors.{i}.mlp"))
+    return g.op("Concat", *outputs, axis=1)
 
 
 def _mappo_values(g: GraphBuilder, x: str, cfg, value_fold: dict) -> str:

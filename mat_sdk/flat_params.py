@@ -14,6 +14,8 @@ policy): `per_parameter_state` and `flat_state` convert.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -48,14 +50,30 @@ class FlatParameters:
         for flat in self.buffers:
             flat.grad.zero_()
 
-    def clip_grad_norm_(self, max_norm: float) -> Tensor:
-        """`torch.nn.utils.clip_grad_norm_` over every group: the total norm before clipping."""
-        norms = torch.stack([torch.linalg.vector_norm(flat.grad) for flat in self.buffers])
+    def clip_grad_norm_(self, max_norm: float, groups: list[int] | None = None) -> Tensor:
+        """`torch.nn.utils.clip_grad_norm_` over every group (or those in `groups`): the
+        total norm before clipping."""
+        chosen = [self.buffers[g] for g in groups] if groups is not None else self.buffers
+        norms = torch.stack([torch.linalg.vector_norm(flat.grad) for flat in chosen])
         total = torch.linalg.vector_norm(norms)
         scale = torch.clamp(max_norm / (total + 1e-6), max=1.0)
-        for flat in self.buffers:
+        for flat in chosen:
             flat.grad.mul_(scale)
         return total
+
+    @contextlib.contextmanager
+    def only(self, groups: list[int]) -> Iterator[None]:
+        """Within: the optimizer sees the gradients of `groups` alone. Torch's Adam skips a
+        buffer without a gradient, leaving its moments and step count as they were, so each
+        group steps as if it had an optimizer of its own (HAPPO's agents)."""
+        hidden = {g: flat.grad for g, flat in enumerate(self.buffers) if g not in groups}
+        for g in hidden:
+            self.buffers[g].grad = None
+        try:
+            yield
+        finally:
+            for g, grad in hidden.items():
+                self.buffers[g].grad = grad
 
     def per_parameter_state(self, flat_state: dict[str, Any]) -> dict[str, Any]:
         """An optimizer state dict over `buffers` as one over the parameters, group by group."""
@@ -106,9 +124,11 @@ def flat_adam(
     eps: float,
     second: nn.Module | None = None,
     second_lr: float | None = None,
+    parts: list[nn.Module] | None = None,
 ) -> tuple[FlatParameters, torch.optim.Adam]:
     """Fused Adam over `model`'s parameters laid out flat: one group, or two when a `second`
-    part of the model (e.g. MAPPO's critic) has its own learning rate `second_lr`."""
+    part of the model (e.g. MAPPO's critic) has its own learning rate `second_lr`, or with
+    `parts` (HAPPO's actors), one group per part before the rest."""
     groups = [{"params": list(model.parameters())}]
     if second is not None:
         own = {id(p) for p in second.parameters()}
@@ -116,6 +136,12 @@ def flat_adam(
             {"params": [p for p in model.parameters() if id(p) not in own]},
             {"params": list(second.parameters()), "lr": second_lr},
         ]
+    if parts:
+        placed = {id(p) for part in parts for p in part.parameters()}
+        rest = [{**group, "params": [p for p in group["params"] if id(p) not in placed]}
+                for group in groups]  # fmt: skip
+        groups = [{"params": list(part.parameters())} for part in parts]
+        groups += [group for group in rest if group["params"]]
     params = FlatParameters([group.pop("params") for group in groups])
     optimizer = torch.optim.Adam(
         [

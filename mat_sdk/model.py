@@ -28,7 +28,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-ALGOS = ("mat", "mat-dec", "mappo")
+ALGOS = ("mat", "mat-dec", "mappo", "happo")
+# Algorithms whose critic reads the joint observation of a fixed number of agents
+FIXED_TEAM = ("mappo", "happo")
 ACTION_TYPES = ("continuous", "discrete")
 UNAVAILABLE_LOGIT = -1e10
 
@@ -56,7 +58,7 @@ CHECKPOINT_KEYS = {"action_size": "action_dim"}  # field -> its key in a checkpo
 class ModelConfig:
     obs_dim: int
     action_size: int  # continuous: size of the action vector; discrete: number of choices
-    n_agents: int  # agents seen in training (MAPPO's critic is tied to it; MAT is not)
+    n_agents: int  # agents seen in training (MAPPO's and HAPPO's are tied to it; MAT is not)
     algo: str = "mat"
     action_type: str = "continuous"
     n_embd: int = 64
@@ -82,6 +84,12 @@ class ModelConfig:
             raise ValueError(f"action_type must be one of {ACTION_TYPES}, got {self.action_type!r}")
         if self.n_embd % self.n_head:
             raise ValueError(f"n_embd {self.n_embd} must be divisible by n_head {self.n_head}")
+
+    @property
+    def fixed_team(self) -> bool:
+        """Whether the policy acts for exactly `n_agents` agents (a joint-observation critic,
+        or HAPPO's actor per agent)."""
+        return self.algo in FIXED_TEAM
 
     def to_dict(self) -> dict:
         """As a checkpoint stores it (`CHECKPOINT_KEYS`: the names checkpoints have always
@@ -319,11 +327,13 @@ class ActionDistribution:
 class PolicyNetwork(nn.Module):
     """The interface the trainer uses: teacher-forced `evaluate`, sampling `act`."""
 
+    shared_std = True  # one action std for every agent (HAPPO: one per agent's actor)
+
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
         self.dist = ActionDistribution(cfg.action_type)
-        if cfg.action_type == "continuous":
+        if cfg.action_type == "continuous" and self.shared_std:
             self.log_std = nn.Parameter(torch.ones(cfg.action_size))
 
     def std(self) -> Tensor | None:
@@ -470,27 +480,88 @@ class MATDec(Decentralised):
         return self.encoder(obs)[1]
 
 
+def centralised_critic(cfg: ModelConfig) -> nn.Sequential:
+    """MAPPO's critic: an MLP on the joint observation plus the agent's own."""
+    return actor_mlp(cfg.obs_dim * (cfg.n_agents + 1), cfg.n_embd, 1)
+
+
+def centralised_values(critic: nn.Module, obs: Tensor, cfg: ModelConfig) -> Tensor:
+    """Each agent's value [B, n, 1] from `centralised_critic`, for exactly `cfg.n_agents`."""
+    batch, n, _ = obs.shape
+    if n != cfg.n_agents:
+        raise ValueError(
+            f"this {cfg.algo.upper()} critic was built for {cfg.n_agents} agents, got {n}"
+        )
+    joint = obs.reshape(batch, 1, -1).expand(batch, n, -1)
+    return critic(torch.cat((joint, obs), dim=-1))
+
+
 class MAPPO(Decentralised):
     """Shared MLP actor; centralised critic on the joint observation plus the agent's own."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__(cfg)
         self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_size)
-        self.critic = actor_mlp(cfg.obs_dim * (cfg.n_agents + 1), cfg.n_embd, 1)
+        self.critic = centralised_critic(cfg)
 
     def actor(self, obs: Tensor) -> Tensor:
         return self.mlp(obs)
 
     def values(self, obs: Tensor) -> Tensor:
-        batch, n, _ = obs.shape
-        if n != self.cfg.n_agents:
-            raise ValueError(f"this MAPPO critic was built for {self.cfg.n_agents} agents, got {n}")
-        joint = obs.reshape(batch, 1, -1).expand(batch, n, -1)
-        return self.critic(torch.cat((joint, obs), dim=-1))
+        return centralised_values(self.critic, obs, self.cfg)
+
+
+class AgentActor(nn.Module):
+    """One HAPPO agent's own actor: the MLP and (continuous) its action std."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.mlp = actor_mlp(cfg.obs_dim, cfg.n_embd, cfg.action_size)
+        if cfg.action_type == "continuous":
+            self.log_std = nn.Parameter(torch.ones(cfg.action_size))
+
+
+class HAPPO(Decentralised):
+    """HAPPO (Kuba et al., ICLR 2022; HARL): MAPPO's centralised critic, and a separate actor
+    per agent, which the update trains one after another (`mat_sdk.happo`)."""
+
+    shared_std = False
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__(cfg)
+        self.actors = nn.ModuleList(AgentActor(cfg) for _ in range(cfg.n_agents))
+        self.critic = centralised_critic(cfg)
+
+    def std(self) -> Tensor | None:
+        """[n, A]: each agent's own, parametrised as the shared one (`PolicyNetwork.std`)."""
+        if self.cfg.action_type != "continuous":
+            return None
+        return torch.sigmoid(torch.stack([a.log_std for a in self.actors])) * 0.5
+
+    def actor(self, obs: Tensor) -> Tensor:
+        if obs.shape[1] != self.cfg.n_agents:
+            raise ValueError(
+                f"this HAPPO policy has actors for {self.cfg.n_agents} agents, got {obs.shape[1]}"
+            )
+        return torch.stack([a.mlp(obs[:, i]) for i, a in enumerate(self.actors)], dim=1)
+
+    def values(self, obs: Tensor) -> Tensor:
+        return centralised_values(self.critic, obs, self.cfg)
+
+    def agent_log_prob(
+        self, agent: int, obs: Tensor, actions: Tensor, available: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Agent `agent`'s log-probs and entropies [B, A or 1] of its taken actions, from
+        its own actor alone (the others' graphs are not built)."""
+        actor = self.actors[agent]
+        std = torch.sigmoid(actor.log_std) * 0.5 if self.cfg.action_type == "continuous" else None
+        mask = None if available is None else available[:, agent]
+        dist = self.dist.make(actor.mlp(obs[:, agent]), std, mask)
+        return self.dist.log_prob_entropy(dist, actions[:, agent])
 
 
 def build_policy(cfg: ModelConfig) -> PolicyNetwork:
-    return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO}[cfg.algo](cfg)
+    return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO, "happo": HAPPO}[cfg.algo](cfg)
 
 
 def check_fits(cfg: ModelConfig, env, env_id: str) -> None:
@@ -509,8 +580,8 @@ def check_fits(cfg: ModelConfig, env, env_id: str) -> None:
             f"{env_id} has {env.action_type} actions of size {env.action_size}, the policy "
             f"{cfg.action_type} of size {cfg.action_size}"
         )
-    if cfg.algo == "mappo" and env.n_agents != cfg.n_agents:
+    if cfg.fixed_team and env.n_agents != cfg.n_agents:
         raise ValueError(
-            f"MAPPO's centralised critic is tied to {cfg.n_agents} agents; {env_id} has "
-            f"{env.n_agents}"
+            f"{cfg.algo.upper()}'s centralised critic is tied to {cfg.n_agents} agents; "
+            f"{env_id} has {env.n_agents}"
         )

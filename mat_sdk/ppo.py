@@ -81,23 +81,35 @@ def ppo_loss(
     clipped = ((ratio - 1).abs() > clip).float()
     if action_dims is not None:
         surrogate = surrogate * action_dims
-    policy_loss = -_mean(surrogate.sum(-1, keepdim=True), active)
+    policy_loss = -masked_mean(surrogate.sum(-1, keepdim=True), active)
+    value = value_loss(values, old_values, returns, clip, huber_delta, active)
+    counted = _product(active, action_dims)
+    entropy = masked_mean(entropy, counted)
+    clip_fraction = masked_mean(clipped, counted)
+    total = policy_loss - entropy_coef * entropy + value_coef * value
+    return LossTerms(total, policy_loss, value, entropy, clip_fraction)
+
+
+def value_loss(
+    values: Tensor,
+    old_values: Tensor,
+    returns: Tensor,
+    clip: float,
+    huber_delta: float,
+    active: Tensor | None = None,
+) -> Tensor:
+    """The official value loss: Huber, the max of clipped and unclipped, over active rows."""
     clipped_values = old_values + (values - old_values).clamp(-clip, clip)
-    value_loss = _mean(
+    return masked_mean(
         torch.max(
             F.huber_loss(values, returns, reduction="none", delta=huber_delta),
             F.huber_loss(clipped_values, returns, reduction="none", delta=huber_delta),
         ),
         active,
     )
-    counted = _product(active, action_dims)
-    entropy = _mean(entropy, counted)
-    clip_fraction = _mean(clipped, counted)
-    total = policy_loss - entropy_coef * entropy + value_coef * value_loss
-    return LossTerms(total, policy_loss, value_loss, entropy, clip_fraction)
 
 
-def _mean(x: Tensor, weights: Tensor | None) -> Tensor:
+def masked_mean(x: Tensor, weights: Tensor | None) -> Tensor:
     """The mean of `x` over the entries that `weights` (0 or 1) keep; None: over all."""
     if weights is None:
         return x.mean()

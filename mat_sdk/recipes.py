@@ -147,10 +147,10 @@ def random_team_return(env_id: str, episodes: int = 16, seed: int = 100, **optio
     return float(np.mean(returns))
 
 
-def continuous_return(seed: int = 0) -> float:
-    """A short MAT run on the two-leg cheetah (100-step episodes): mean of the last 4 updates."""
+def continuous_return(seed: int = 0, algo: str = "mat") -> float:
+    """A short run on the two-leg cheetah (100-step episodes): mean of the last 4 updates."""
     returns = train_returns(
-        CONTINUOUS_ENV, "mat", CONTINUOUS_STEPS, seed=seed, env_options=CONTINUOUS_OPTIONS,
+        CONTINUOUS_ENV, algo, CONTINUOUS_STEPS, seed=seed, env_options=CONTINUOUS_OPTIONS,
         **CONTINUOUS,
     )  # fmt: skip
     return float(np.nanmean(returns[-4:]))
@@ -247,6 +247,12 @@ RECIPES: dict[str, Recipe] = {
         lambda: 0.5,
         False,
         "MAT-Dec cannot: last-5 return <= 0.5 (its best is 1/3)",
+    ),
+    "game-happo": Recipe(
+        lambda seed: game_return("happo", seed),
+        lambda: 0.25,
+        True,
+        "HAPPO reaches the decentralised best (1/3): last-5 return >= 0.25",
     ),
     "game-onnx": Recipe(
         onnx_game_return, lambda: 0.9, True, "ONNX Runtime rollouts solve it: last-5 >= 0.9"

@@ -151,6 +151,8 @@ def tuned(request: RunRequest, say: Say = print) -> dict[str, Any]:
     from mat_sdk import envs
     from mat_sdk.tuning import TUNED, tuned_settings, wanted
 
+    if request.algo == "happo":  # its sequential update has no levers to measure
+        return {}
     fixed = {name: request.options[name] for name in TUNED if name in request.given}
     device = request.options.get("device", "cpu")
     if not wanted(request.tune, request.steps, _on_cpu(device), fixed):

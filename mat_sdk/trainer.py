@@ -22,13 +22,13 @@ from typing import Any
 
 import torch
 
-from mat_sdk import checkpoint, envs, files
+from mat_sdk import checkpoint, envs, files, happo
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import ModelConfig, PolicyNetwork, build_policy, check_fits
+from mat_sdk.model import HAPPO, ModelConfig, PolicyNetwork, build_policy, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
@@ -106,9 +106,11 @@ class Trainer:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`); MAPPO's
         critic gets its own learning rate when `critic_lr` is set."""
         critic = getattr(self.policy, "critic", None) if self.config.critic_lr else None
+        actors = list(self.policy.actors) if isinstance(self.policy, HAPPO) else None
         self.params, self.optimizer = flat_adam(
-            self.policy, self.config.lr, self.config.adam_eps, critic, self.config.critic_lr
-        )
+            self.policy, self.config.lr, self.config.adam_eps, critic, self.config.critic_lr,
+            parts=actors,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ acting
     @property
@@ -201,6 +203,13 @@ class Trainer:
     def _update(self, trajectory: Trajectory) -> dict[str, float]:
         cfg = self.config
         rows = trajectory.rows(cfg.advantage_std_floor)
+        if isinstance(self.policy, HAPPO):  # agents one after another (mat_sdk.happo)
+            losses, finite = happo.update(
+                self.policy, self.params, self.optimizer, self.value_norm, rows, cfg,
+                self.collector.shuffle_generator,
+            )  # fmt: skip
+            self._check_finite(finite)
+            return losses
         self.gradients.share(rows)
         size = rows["obs"].shape[0]
         minibatch = size // cfg.num_minibatches
@@ -226,12 +235,15 @@ class Trainer:
                 ):
                     sums[key] = sums[key] + value.detach()
                 count += 1
-        if not bool(finite):
+        self._check_finite(bool(finite))
+        return {key: float(value) / count for key, value in sums.items()}
+
+    def _check_finite(self, finite: bool) -> None:
+        if not finite:
             raise TrainingDiverged(
                 f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
                 "the last good checkpoint is kept"
             )
-        return {key: float(value) / count for key, value in sums.items()}
 
     def optimizer_step(self, rows: dict[str, torch.Tensor], idx: torch.Tensor):
         """One PPO step on the minibatch `idx` of the update's `rows` (already

@@ -16,7 +16,8 @@ from typing import Any
 
 from mat_runtime.errors import BundleError
 
-ALGOS = ("mat", "mat-dec", "mappo")
+ALGOS = ("mat", "mat-dec", "mappo", "happo")
+FIXED_TEAM = ("mappo", "happo")  # policies for exactly the agent count they were trained on
 ACTION_TYPES = ("continuous", "discrete")
 GRAPH_NAME = re.compile(r"(encoder|decoder_step|decode|decode_n(\d+))\.onnx$")
 _LARGEST = 2**31 - 1  # sizes beyond this are not a policy, and overflow numpy and ORT
@@ -111,8 +112,8 @@ def check_manifest(manifest: dict[str, Any], where: str) -> None:
     type or out of range, or that disagrees with another; `where` names the file."""
     _check(manifest, SCHEMA, "", where, OPTIONAL)
     action, agents = manifest["action"], manifest["agents"]
-    if manifest["algo"] == "mappo" and agents["max"] != agents["min"]:
-        _fail(where, "agents", f"of a mappo bundle must be one count, got {agents!r}")
+    if manifest["algo"] in FIXED_TEAM and agents["max"] != agents["min"]:
+        _fail(where, "agents", f"of a {manifest['algo']} bundle must be one count, got {agents!r}")
     choices = agents.get("choices")  # discrete agents' own numbers of choices
     if choices is not None and (
         action["type"] != "discrete"

@@ -84,6 +84,8 @@ def test_export_is_deterministic(mat_checkpoint, mat_bundle, tmp_path):
         ("hopper-2x2", "mat", "autoregressive", ["1", "2", "6", "17", "64"]),  # one head
         ("hopper-2x2", "mat-dec", "decentralised", ["1", "2", "6", "17", "64"]),
         ("coordination-3", "mappo", "decentralised", ["3"]),
+        ("coordination-3", "happo", "decentralised", ["3"]),  # an actor per agent
+        ("hopper-2x2", "happo", "decentralised", ["2"]),  # and a std per agent
     ],
 )
 def test_one_head_discrete_and_baseline_policies_export(tmp_path, env_id, algo, kind, counts):

@@ -52,3 +52,35 @@ def test_flat_clip_and_adam_match_torch_per_parameter_and_save_its_layout():
     loaded = flat_opt.state_dict()["state"][1]["exp_avg_sq"]
     parts = [expected["state"][i]["exp_avg_sq"].reshape(-1) for i in (2, 3)]
     assert torch.equal(loaded, torch.cat(parts))
+
+
+def test_only_steps_the_chosen_group_as_if_it_had_an_optimizer_of_its_own():
+    """HAPPO's agents: while one group steps, the others' weights, Adam moments and step
+    counts stay as they were, and the chosen group moves exactly as a lone Adam moves it."""
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(4, 4), nn.Tanh(), nn.Linear(4, 2))
+    flat = FlatParameters([list(model[0].parameters()), list(model[2].parameters())])
+    optimizer = torch.optim.Adam([{"params": [b]} for b in flat.buffers], lr=1e-2, fused=True)
+    x = torch.randn(8, 4)
+    flat.zero_grad()
+    model(x).sum().backward()
+    with flat.only([0]):  # the first group steps once and has moments; the second none
+        optimizer.step()
+    first = flat.buffers[0].detach().clone()
+    moments = {k: v.clone() for k, v in optimizer.state[flat.buffers[0]].items()}
+    alone = copy.deepcopy(model[2])
+    alone_optimizer = torch.optim.Adam(alone.parameters(), lr=1e-2)
+    for _ in range(3):
+        flat.zero_grad()
+        model(x).sum().backward()
+        alone_optimizer.zero_grad()
+        alone(torch.tanh(model[0](x)).detach()).sum().backward()
+        with flat.only([1]):
+            optimizer.step()
+        alone_optimizer.step()
+        assert flat.buffers[0].grad.abs().sum() > 0  # a gradient it was not stepped by
+    assert torch.equal(flat.buffers[0], first)
+    for key, value in optimizer.state[flat.buffers[0]].items():
+        assert torch.equal(value, moments[key]), key
+    for ours, lone in zip(model[2].parameters(), alone.parameters(), strict=True):
+        assert torch.allclose(ours, lone, atol=1e-6)

@@ -66,7 +66,7 @@ def test_an_attention_window_limits_what_each_agent_sees():
         ModelConfig(obs_dim=5, action_size=2, n_agents=9, attention_window=1)
 
 
-@pytest.mark.parametrize("algo", ["mat", "mat-dec", "mappo"])
+@pytest.mark.parametrize("algo", ["mat", "mat-dec", "mappo", "happo"])
 def test_every_algo_acts_and_evaluates(algo):
     policy = build_policy(ModelConfig(obs_dim=7, action_size=3, n_agents=3, algo=algo))
     obs = torch.randn(4, 3, 7)

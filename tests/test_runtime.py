@@ -34,6 +34,7 @@ def bundles(tmp_path_factory):
         "mat-window": ("hopper-2x2", "mat", {"attention_window": 3}),  # 17, 64: past it
         "mat-dec": ("hopper-2x2", "mat-dec", {}),
         "mappo": ("coordination-3", "mappo", {}),
+        "happo": ("hopper-2x2", "happo", {}),
     }
     made = {}
     for name, (env_id, algo, options) in recipes.items():
@@ -52,11 +53,11 @@ def _torch_actions(loaded: CheckpointPolicy, obs: np.ndarray) -> np.ndarray:
     return loaded.act(obs[None] if obs.ndim == 2 else obs)
 
 
-@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-window", "mat-dec", "mappo"])
+@pytest.mark.parametrize("name", ["mat", "mat-discrete", "mat-window", "mat-dec", "mappo", "happo"])
 def test_deterministic_actions_equal_the_torch_policy(bundles, name):
     ckpt, bundle = bundles[name]
     policy, loaded = Policy.load(bundle), CheckpointPolicy.from_checkpoint(ckpt)
-    counts = (3,) if name == "mappo" else COUNTS
+    counts = {"mappo": (3,), "happo": (2,)}.get(name, COUNTS)
     for n in counts:
         obs = _obs(policy, n)
         got, expected = policy.act(obs), _torch_actions(loaded, obs)[0]

@@ -29,6 +29,13 @@ def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
     assert mat - dec >= 0.4
 
 
+def test_happo_reaches_the_decentralised_best_on_the_coordination_game_and_no_more():
+    """`mat bench seeds --recipe game-happo`: every seed swept ends near 1/3 (BENCHMARKS.md)."""
+    happo = recipes.game_return("happo")
+    assert happo >= 0.25, happo  # random play: 2/27 = 0.07; decentralised best: 1/3
+    assert happo <= 0.5, happo  # an actor per agent still cannot see the others' choices
+
+
 def test_short_continuous_run_beats_a_random_team():
     bound = recipes.continuous_bound()
     learned = recipes.continuous_return()
@@ -79,16 +86,18 @@ RESUMABLE = {
     "ONNX rollouts": ("hopper-4x1", {"rollout_backend": "onnx"}),
     "several agent counts": ("swimmer-4", {"more_envs": ["swimmer-5", "swimmer-6"]}),
     "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
+    "HAPPO": ("hopper-4x1", {"algo": "happo"}),
 }
 
 
 @pytest.mark.parametrize(("env_id", "options"), list(RESUMABLE.values()), ids=list(RESUMABLE))
 def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, env_id, options):
     run = {"shuffle_agents": True, **TINY, **options}
-    with Trainer(env_id, "mat", out_dir=tmp_path / "a", **run) as straight:
+    algo = run.pop("algo", "mat")
+    with Trainer(env_id, algo, out_dir=tmp_path / "a", **run) as straight:
         straight.learn(120, progress_bar=False)
         uninterrupted = finished_state(straight)
-    with Trainer(env_id, "mat", out_dir=tmp_path / "b", **run) as first:
+    with Trainer(env_id, algo, out_dir=tmp_path / "b", **run) as first:
         first.learn(60, progress_bar=False)
     with Trainer.load(tmp_path / "b" / "checkpoint.pt", out_dir=tmp_path / "b") as resumed:
         assert resumed.progress == {"steps": 60, "updates": 2}
@@ -283,7 +292,7 @@ def test_bad_input_gives_clear_errors(tmp_path):
 
 
 def test_every_algo_trains_saves_loads_and_predicts(tmp_path):
-    for algo in ("mat", "mat-dec", "mappo"):
+    for algo in ("mat", "mat-dec", "mappo", "happo"):
         with Trainer("hopper-2x2", algo, **TINY) as trainer:
             trainer.learn(30, progress_bar=False)
             path = trainer.save(tmp_path / f"{algo}.pt")
