@@ -275,6 +275,12 @@ RECIPES: dict[str, Recipe] = {
         True,
         "a short cheetah-2x3 run beats max(2, 3x a random team)",
     ),
+    "continuous-happo": Recipe(
+        lambda seed: continuous_return(seed, "happo"),
+        continuous_bound,
+        True,
+        "HAPPO's short cheetah-2x3 run beats it too",
+    ),
     "arm": Recipe(
         arm_return,
         lambda: beats_random(ARM_ENV, ARM_FRACTION),
