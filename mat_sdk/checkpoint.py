@@ -136,7 +136,8 @@ def restore_pretrained(
     value_norm.load_state_dict(payload["value_norm"])
     if optimizer is not None:
         optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
-        for group in optimizer.param_groups[:1]:
+        groups = optimizer.param_groups  # a critic with its own rate is the last group
+        for group in groups if len(groups) == 1 else groups[:-1]:
             group["lr"] = lr
 
 

@@ -250,7 +250,7 @@ def test_non_finite_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_p
 
 
 def test_bad_input_gives_clear_errors(tmp_path):
-    with pytest.raises(ValueError, match="unknown algo 'ppo'; valid: mat, mat-dec, mappo"):
+    with pytest.raises(ValueError, match="unknown algo 'ppo'; valid: mat, mat-dec, mappo, happo"):
         Trainer("coordination-3", "ppo", num_envs=1)
     with pytest.raises(ValueError, match="unknown environment id"):
         Trainer("cheetah-9x9", "mat", num_envs=1)

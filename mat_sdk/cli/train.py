@@ -40,7 +40,12 @@ TRAIN_OPTIONS = {
 
 @main.command()
 @click.argument("env_ids", nargs=-1, required=True)
-@click.option("--algo", default=TrainConfig.algo, show_default=True, help="mat | mat-dec | mappo")
+@click.option(
+    "--algo",
+    default=TrainConfig.algo,
+    show_default=True,
+    help="mat | mat-dec | mappo | happo (an actor per agent, updated in turn).",
+)
 @click.option(
     "--recipe",
     type=click.Choice(list(RECIPES)),
