@@ -437,7 +437,7 @@ def test_the_step_path_decodes_agent_by_agent_equal_to_decode_onnx(bundles, name
 
 
 def test_the_step_path_is_for_autoregressive_bundles(bundles):
-    for name in ("mat-dec", "mappo"):
+    for name in ("mat-dec", "mappo", "happo"):
         with pytest.raises(BundleError, match="decoding agent by agent is for MAT bundles"):
             Policy.load(bundles[name][1], graph="step")
     with pytest.raises(InputError, match="graph must be one of"):
