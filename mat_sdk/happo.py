@@ -13,6 +13,8 @@ alone (`FlatParameters.only`), as with HARL's optimizer per agent.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import Tensor
 
@@ -21,6 +23,9 @@ from mat_sdk.model import HAPPO
 from mat_sdk.normalization import ValueNorm
 from mat_sdk.ppo import masked_mean, value_loss
 
+if TYPE_CHECKING:
+    from mat_sdk.config import TrainConfig
+
 
 def update(
     policy: HAPPO,
@@ -28,21 +33,21 @@ def update(
     optimizer: torch.optim.Optimizer,
     value_norm: ValueNorm,
     rows: dict[str, Tensor],
-    config,
+    config: TrainConfig,
     generator: torch.Generator,
 ) -> tuple[dict[str, float], bool]:
     """One HAPPO update on the rollout's `rows` (`Trajectory.rows`): its mean loss terms, and
     whether every loss was finite."""
     critic = [policy.cfg.n_agents]  # the critic's group comes after the actors'
-    size = rows["obs"].shape[0]
+    size, device = rows["obs"].shape[0], rows["obs"].device
     per_minibatch = size // config.num_minibatches
     sums = dict.fromkeys(("policy_loss", "value_loss", "entropy", "clip_fraction"), 0.0)
     norms: list[Tensor] = []
-    finite = torch.ones((), dtype=torch.bool)
+    finite = torch.ones((), dtype=torch.bool, device=device)
 
     def minibatches():
         for _ in range(config.ppo_epochs):
-            order = torch.randperm(size, generator=generator)
+            order = torch.randperm(size, generator=generator).to(device)
             for k in range(config.num_minibatches):
                 yield order[k * per_minibatch : (k + 1) * per_minibatch]
 
@@ -66,7 +71,7 @@ def update(
         step(config.value_coef * loss, critic)
         sums["value_loss"] += float(loss.detach()) / (config.ppo_epochs * config.num_minibatches)
 
-    factor = torch.ones(size, 1)
+    factor = torch.ones(size, 1, device=device)
     agents = torch.randperm(policy.cfg.n_agents, generator=generator).tolist()
     actor_steps = len(agents) * config.ppo_epochs * config.num_minibatches
     for agent in agents:

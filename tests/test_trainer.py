@@ -389,3 +389,60 @@ def test_recipes_set_the_update_and_are_recorded(tmp_path):
     with Trainer.load(DATA / "mat-coordination3-5510455.pt") as resumed:
         assert resumed.config.recipe == "paper"
         assert resumed.config.lr == old["config"]["train"]["lr"]
+
+
+def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratios():
+    """One HAPPO update (1 epoch, 1 minibatch) against the algorithm written out by hand:
+    critic step, then the agents in the drawn order, each with its own Adam and the advantage
+    times the product of the earlier agents' new/old ratios. Fails if the factor is dropped,
+    if an agent's step moves another's weights, or if the order is not the drawn one."""
+    import copy
+
+    from mat_sdk import happo
+    from mat_sdk.ppo import value_loss
+
+    options = {**TINY, "ppo_epochs": 1, "num_minibatches": 1, "lr": 3e-2, "critic_lr": 1e-2}
+    with Trainer("hopper-4x1", "happo", **options) as trainer:
+        cfg, policy = trainer.config, trainer.policy
+        rows = trainer.rollout().rows(cfg.advantage_std_floor)
+        reference, value_norm = copy.deepcopy(policy), copy.deepcopy(trainer.value_norm)
+        generator = torch.Generator().set_state(trainer.collector.shuffle_generator.get_state())
+        happo.update(
+            policy, trainer.params, trainer.optimizer, trainer.value_norm, rows, cfg,
+            trainer.collector.shuffle_generator,
+        )  # fmt: skip
+
+    def adam_step(module, loss, lr):
+        optimizer = torch.optim.Adam(module.parameters(), lr=lr, eps=cfg.adam_eps)
+        module.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(module.parameters(), cfg.max_grad_norm)
+        optimizer.step()
+
+    size = rows["obs"].shape[0]
+    torch.randperm(size, generator=generator)  # the critic's minibatch order
+    value_norm.update(rows["returns"])
+    loss = value_loss(
+        reference.values(rows["obs"]), rows["values"], value_norm.normalize(rows["returns"]),
+        cfg.clip, cfg.huber_delta,
+    )  # fmt: skip
+    adam_step(reference.critic, loss, cfg.critic_lr)
+    factor = torch.ones(size, 1)
+    order = torch.randperm(4, generator=generator).tolist()
+    assert sorted(order) == [0, 1, 2, 3]
+    for agent in order:
+        torch.randperm(size, generator=generator)  # this agent's minibatch order
+        log_prob, entropy = reference.agent_log_prob(agent, rows["obs"], rows["actions"])
+        ratio = torch.exp((log_prob - rows["log_probs"][:, agent]).sum(-1, keepdim=True))
+        advantages = factor * rows["advantages"][:, agent]
+        clipped = ratio.clamp(1 - cfg.clip, 1 + cfg.clip)
+        surrogate = torch.min(ratio * advantages, clipped * advantages).mean()
+        adam_step(reference.actors[agent], -surrogate - cfg.entropy_coef * entropy.mean(), cfg.lr)
+        with torch.no_grad():
+            log_prob, _ = reference.agent_log_prob(agent, rows["obs"], rows["actions"])
+            factor = factor * torch.exp((log_prob - rows["log_probs"][:, agent]).sum(-1, True))
+    assert not torch.allclose(factor, torch.ones_like(factor))  # the weighting is exercised
+    for (name, ours), theirs in zip(
+        policy.state_dict().items(), reference.state_dict().values(), strict=True
+    ):
+        assert torch.allclose(ours, theirs, atol=1e-5), name
