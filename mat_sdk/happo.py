@@ -21,7 +21,7 @@ from torch import Tensor
 from mat_sdk.flat_params import FlatParameters
 from mat_sdk.model import HAPPO
 from mat_sdk.normalization import ValueNorm
-from mat_sdk.ppo import masked_mean, value_loss
+from mat_sdk.ppo import counted_entries, masked_mean, value_loss
 
 if TYPE_CHECKING:
     from mat_sdk.config import TrainConfig
@@ -109,9 +109,7 @@ def _agent_terms(
         agent, rows["obs"][idx], rows["actions"][idx], available
     )
     difference = log_prob - rows["log_probs"][idx, agent]
-    weights = active
-    if "action_dims" in rows:
-        dims = rows["action_dims"][idx, agent]
+    dims = rows["action_dims"][idx, agent] if "action_dims" in rows else None
+    if dims is not None:
         difference = torch.where(dims > 0, difference, torch.zeros_like(difference))
-        weights = dims if active is None else active * dims
-    return difference.sum(-1, keepdim=True), masked_mean(entropy, weights)
+    return difference.sum(-1, keepdim=True), masked_mean(entropy, counted_entries(active, dims))

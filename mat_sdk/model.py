@@ -324,6 +324,12 @@ class ActionDistribution:
         return dist.mean + dist.stddev * noise
 
 
+def official_std(log_std: Tensor) -> Tensor:
+    """The official parametrisation of the action std: sigmoid(log_std) * 0.5 (initially
+    ~0.37)."""
+    return torch.sigmoid(log_std) * 0.5
+
+
 class PolicyNetwork(nn.Module):
     """The interface the trainer uses: teacher-forced `evaluate`, sampling `act`."""
 
@@ -337,8 +343,7 @@ class PolicyNetwork(nn.Module):
             self.log_std = nn.Parameter(torch.ones(cfg.action_size))
 
     def std(self) -> Tensor | None:
-        """Official parametrisation: sigmoid(log_std) * 0.5 (initially ~0.37)."""
-        return torch.sigmoid(self.log_std) * 0.5 if self.cfg.action_type == "continuous" else None
+        return official_std(self.log_std) if self.cfg.action_type == "continuous" else None
 
     def values(self, obs: Tensor) -> Tensor:
         raise NotImplementedError
@@ -536,7 +541,7 @@ class HAPPO(Decentralised):
         """[n, A]: each agent's own, parametrised as the shared one (`PolicyNetwork.std`)."""
         if self.cfg.action_type != "continuous":
             return None
-        return torch.sigmoid(torch.stack([a.log_std for a in self.actors])) * 0.5
+        return official_std(torch.stack([a.log_std for a in self.actors]))
 
     def actor(self, obs: Tensor) -> Tensor:
         if obs.shape[1] != self.cfg.n_agents:
@@ -554,7 +559,7 @@ class HAPPO(Decentralised):
         """Agent `agent`'s log-probs and entropies [B, A or 1] of its taken actions, from
         its own actor alone (the others' graphs are not built)."""
         actor = self.actors[agent]
-        std = torch.sigmoid(actor.log_std) * 0.5 if self.cfg.action_type == "continuous" else None
+        std = official_std(actor.log_std) if self.cfg.action_type == "continuous" else None
         mask = None if available is None else available[:, agent]
         dist = self.dist.make(actor.mlp(obs[:, agent]), std, mask)
         return self.dist.log_prob_entropy(dist, actions[:, agent])

@@ -83,7 +83,7 @@ def ppo_loss(
         surrogate = surrogate * action_dims
     policy_loss = -masked_mean(surrogate.sum(-1, keepdim=True), active)
     value = value_loss(values, old_values, returns, clip, huber_delta, active)
-    counted = _product(active, action_dims)
+    counted = counted_entries(active, action_dims)
     entropy = masked_mean(entropy, counted)
     clip_fraction = masked_mean(clipped, counted)
     total = policy_loss - entropy_coef * entropy + value_coef * value
@@ -117,7 +117,8 @@ def masked_mean(x: Tensor, weights: Tensor | None) -> Tensor:
     return (x * weights).sum() / weights.sum().clamp_min(1.0)
 
 
-def _product(active: Tensor | None, action_dims: Tensor | None) -> Tensor | None:
+def counted_entries(active: Tensor | None, action_dims: Tensor | None) -> Tensor | None:
+    """The weights of the entries that count: active agents' real action dimensions."""
     if active is None:
         return action_dims
     return active if action_dims is None else active * action_dims

@@ -99,17 +99,8 @@ def _train(ids: list[str], options, seed: int, steps: int, out: Path, model: dic
     if (out / "done").exists():
         return
     resume = ["--resume"] if (out / "checkpoint.pt").exists() else []
-    command = [
-        "mat",
-        "train",
-        *ids,
-        "--recipe",
-        "paper",
-        "--seed",
-        str(seed),
-        "--steps",
-        str(steps),
-    ]
+    command = ["mat", "train", *ids, "--recipe", "paper"]  # the recipe its results had
+    command += ["--seed", str(seed), "--steps", str(steps)]
     command += ["--eval-every", "0"]  # evaluated afterwards, through the runtime
     settings = _settings(options, {**RECIPE, **model})
     _run([*command, "--out", str(out), "--quiet", *resume, *settings], out / "log.txt")
