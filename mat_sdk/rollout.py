@@ -13,6 +13,7 @@ arrive), the sampling generator, the agent-order generator, and the envs' next o
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -71,6 +72,26 @@ class Trajectory:
         scale = counted.std().clamp_min(std_floor) + 1e-5
         flat["advantages"] = (advantages - counted.mean()) / scale
         return flat
+
+    def diagnostics(self) -> dict[str, float]:
+        """What says whether learning can still move: the advantages' spread before they are
+        normalised (reward units; near 0, every action looks alike) and the share of the
+        returns' variance the value predictions explain (1: exact; <= 0: no better than
+        their mean). Over the agents in their episode only."""
+        if self.advantages is None:
+            raise ValueError("diagnostics need the advantages: RolloutCollector.advantages first")
+        advantages, returns = self.advantages, self.returns
+        if self.active is not None:
+            counted = self.active.expand_as(advantages) > 0
+            advantages, returns = advantages[counted], returns[counted]
+        returns_var = float(returns.var())
+        return {
+            "advantage_std": float(advantages.std()),
+            # returns - values are the advantages
+            "explained_variance": 1.0 - float(advantages.var()) / returns_var
+            if returns_var > 0
+            else math.nan,
+        }
 
     @classmethod
     def join(cls, parts: list[Trajectory], device: torch.device) -> Trajectory:

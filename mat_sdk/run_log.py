@@ -85,7 +85,8 @@ def update_metrics(
     update_s: float,
 ) -> dict[str, float]:
     """One update's row of metrics.csv: progress, the returns of the episodes that finished,
-    the team reward per env step (`rewards` of its `env_steps`), the losses and timings."""
+    the team reward per env step (`rewards` of its `env_steps`), the losses and diagnostics,
+    and the timings."""
     return {
         "steps": progress["steps"],
         "updates": progress["updates"],

@@ -161,6 +161,7 @@ class Trainer:
                 rolled = time.perf_counter()
                 losses = self._update(trajectory)
                 updated = time.perf_counter()
+                losses |= {**trajectory.diagnostics(), **self._action_std()}
                 self.progress["steps"] += per_update
                 self.progress["updates"] += 1
                 metrics = update_metrics(
@@ -237,6 +238,11 @@ class Trainer:
                 count += 1
         self._check_finite(bool(finite))
         return {key: float(value) / count for key, value in sums.items()}
+
+    def _action_std(self) -> dict[str, float]:
+        """The policy's mean action std (continuous actions): how much it still explores."""
+        std = self.policy.std()
+        return {} if std is None else {"action_std": float(std.mean())}
 
     def _check_finite(self, finite: bool) -> None:
         if not finite:
