@@ -1,5 +1,6 @@
 """PPO trainer: learning (honest, seconds), exact resume, crash safety, clear errors."""
 
+import dataclasses
 import json
 import os
 import re
@@ -15,6 +16,7 @@ import torch
 from helpers import GAME
 
 from mat_sdk import checkpoint, envs, recipes
+from mat_sdk.rollout import Trajectory
 from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
 
 DATA = Path(__file__).parent / "data"
@@ -95,6 +97,36 @@ RESUMABLE = {
     "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
     "HAPPO": ("hopper-4x1", {"algo": "happo"}),
 }
+
+
+def test_each_update_logs_what_says_whether_learning_can_still_move(tmp_path):
+    """advantage_std, explained_variance and action_std: the columns a stalled run is traced by."""
+    with Trainer("hopper-2x2", "mat", out_dir=tmp_path, **TINY) as trainer:
+        trainer.learn(60, progress_bar=False)
+    rows = logged_rows(tmp_path)
+    assert len(rows) == 2
+    for row in rows:
+        assert float(row["advantage_std"]) > 0
+        assert float(row["explained_variance"]) <= 1.0
+        assert 0 < float(row["action_std"]) <= 0.5  # the official std: sigmoid(log_std) * 0.5
+
+
+def test_explained_variance_is_one_for_exact_values_and_zero_for_their_mean():
+    returns = torch.arange(12.0).reshape(3, 2, 2, 1)
+    shapes = dict.fromkeys(("obs", "actions", "log_probs", "rewards", "terminated", "done"))
+    base = Trajectory(
+        **{k: torch.zeros(3, 2, 2, 1) for k in shapes},
+        values=returns,
+        bootstrap=torch.zeros(3, 2, 2, 1),
+        last_values=torch.zeros(2, 2, 1),
+        finished=[],
+        advantages=torch.zeros_like(returns),
+        returns=returns,
+    )
+    exact = base.diagnostics()
+    assert exact["explained_variance"] == 1.0 and exact["advantage_std"] == 0.0
+    mean_only = dataclasses.replace(base, advantages=returns - returns.mean())
+    assert mean_only.diagnostics()["explained_variance"] == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.parametrize(("env_id", "options"), list(RESUMABLE.values()), ids=list(RESUMABLE))
