@@ -99,7 +99,11 @@ class Episodes:
             f"{len(self.returns)} episodes"
         )
         if any(self.ended):
-            line += f"; {sum(self.ended)} ended early (fell or failed)"
+            early = [n for n, ended in zip(self.lengths, self.ended, strict=True) if ended]
+            line += (
+                f"; {len(early)} ended early (fell or failed), after {np.mean(early):.0f} "
+                "steps on average"
+            )
         if not np.isnan(self.speeds).all():
             line += (
                 f"; forward speed {np.nanmean(self.speeds):.3f} +- {np.nanstd(self.speeds):.3f} m/s"

@@ -1,5 +1,6 @@
 """Multi-agent robots: PettingZoo API, decomposition, seeding, faults, bad input."""
 
+import math
 import os
 import re
 import signal
@@ -339,6 +340,23 @@ def test_bad_faults_are_rejected_clearly():
         envs.make("cheetah-6x1", faults={"bfoot": "wobble"})
     with pytest.raises(ValueError, match="remove every agent"):
         envs.make("cheetah-2x3", faults={"agent_0": "remove", "agent_1": "remove"})
+
+
+def test_mamujoco_travel_is_the_root_x_the_forward_reward_pays_for():
+    """A Walker's travel is its root's x displacement this episode; a Reacher has no moving
+    root, so no travel."""
+    team = envs.make_team("mamujoco:Walker2d-2x3", seed=0)
+    team.reset(seed=0)
+    env = team._env.single_agent_env.unwrapped
+    start = float(env.data.qpos[0])
+    for _ in range(20):
+        team.step(np.full((2, 3), 0.5))
+    assert team.travelled() == pytest.approx(float(env.data.qpos[0]) - start)
+    assert abs(team.travelled()) > 1e-3
+    reacher = envs.make_team("mamujoco:Reacher-2x1", seed=0)
+    reacher.reset(seed=0)
+    reacher.step(np.full((2, 1), 0.5))
+    assert math.isnan(reacher.travelled())
 
 
 def test_mamujoco_faults_name_an_agent_or_a_joint():

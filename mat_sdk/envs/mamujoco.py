@@ -19,6 +19,7 @@ import contextlib
 import fcntl
 import functools
 import io
+import math
 import re
 import tempfile
 from collections.abc import Mapping
@@ -143,6 +144,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
         self._steps = 0
+        self._start_x = math.nan  # the root's x at the episode's start (`travelled`)
         self.randomization = Randomization.parse(randomize)
         self._randomizer = None
         if self.randomization is not None:  # its observation is one signal, "obs"
@@ -173,9 +175,25 @@ class MaMuJoCoTeam(ArrayTeam):
             seed, self._seed = self._seed, None  # the first reset takes the constructor's seed
         obs, _ = self._env.reset(seed=seed)
         self._steps = 0
+        self._start_x = self._root_x()
         if self._randomizer is not None:  # the robot of this episode (start noise: the env's own)
             self._randomizer.new_episode(self._random())
         return self._sensed(obs)
+
+    def _root_x(self) -> float:
+        """The root's x position where the scenario's robot moves along x (its first joint a
+        free joint or a slide along x, as Gymnasium's locomotion tasks); NaN for the others."""
+        model = self._env.single_agent_env.unwrapped.model
+        root = model.jnt_type[0] if model.njnt else None
+        along_x = root == mujoco.mjtJoint.mjJNT_SLIDE and np.allclose(model.jnt_axis[0], (1, 0, 0))
+        if root != mujoco.mjtJoint.mjJNT_FREE and not along_x:
+            return math.nan
+        return float(self._env.single_agent_env.unwrapped.data.qpos[model.jnt_qposadr[0]])
+
+    def travelled(self) -> float:
+        """How far the robot moved along x in this episode (m; the distance the Gymnasium
+        reward's forward velocity pays for); NaN for scenarios without a moving root."""
+        return self._root_x() - self._start_x
 
     def _random(self) -> np.random.Generator:
         return self._env.single_agent_env.unwrapped.np_random
@@ -287,6 +305,7 @@ class MaMuJoCoTeam(ArrayTeam):
             "physics": physics,
             "random": env.np_random.bit_generator.state,
             "steps": self._steps,
+            "start_x": self._start_x,
             **({"randomizer": self._randomizer.get_state()} if self._randomizer else {}),
         }
 
@@ -298,6 +317,7 @@ class MaMuJoCoTeam(ArrayTeam):
         )
         env.np_random.bit_generator.state = state["random"]
         self._steps = int(state["steps"])
+        self._start_x = float(state.get("start_x", math.nan))  # absent: saved before it was kept
         self._seed = None
         if self._randomizer is not None:
             self._randomizer.set_state(state["randomizer"])
