@@ -242,7 +242,7 @@ class Trainer:
     def _action_std(self) -> dict[str, float]:
         """The policy's mean action std (continuous actions): how much it still explores."""
         std = self.policy.std()
-        return {} if std is None else {"action_std": float(std.mean())}
+        return {} if std is None else {"action_std": float(std.detach().mean())}
 
     def _check_finite(self, finite: bool) -> None:
         if not finite:
