@@ -213,14 +213,23 @@ def interval_estimates(
 ) -> tuple[dict, dict]:
     """rliable's point estimates and stratified-bootstrap CIs of `aggregate` over seeds:
     `scores` maps a name to [seeds, tasks] scores (or a tuple of such for a pairwise
-    aggregate). The same resampling everywhere we report a CI; needs `mat-sdk[report]`."""
-    import warnings
+    aggregate). The same resampling everywhere we report a CI; needs `mat-sdk[report]`.
 
+    Reproducible: rliable 1.2's bootstraps draw their resamples from NumPy's global stream
+    (its `random_state` argument is not used for them), so that stream is seeded `seed` for
+    each name in turn, and restored after. Each name's CI is then the same on every run and
+    whatever else is reported beside it."""
     from rliable import library as rly
 
-    # arch (rliable's bootstrap) warns that RandomState is deprecated, which rliable passes
-    warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
-    return rly.get_interval_estimates(
-        scores, aggregate, reps=BOOTSTRAP_REPS, confidence_interval_size=confidence,
-        random_state=np.random.RandomState(seed),
-    )  # fmt: skip
+    points, intervals = {}, {}
+    outside = np.random.get_state()
+    try:
+        for name, score in scores.items():
+            np.random.seed(seed)
+            point, interval = rly.get_interval_estimates(
+                {name: score}, aggregate, reps=BOOTSTRAP_REPS, confidence_interval_size=confidence
+            )
+            points[name], intervals[name] = point[name], interval[name]
+    finally:
+        np.random.set_state(outside)
+    return points, intervals

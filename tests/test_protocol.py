@@ -10,7 +10,7 @@ from helpers import mat
 
 from mat_sdk import checkpoint
 from mat_sdk.multiseed import DONE_NAME, parse_seeds
-from mat_sdk.protocol import ABSOLUTE_FACTOR, env_and_task, read_evaluations
+from mat_sdk.protocol import ABSOLUTE_FACTOR, env_and_task, interval_estimates, read_evaluations
 
 # a run of a few seconds on the coordination game, evaluated every update
 TINY = [
@@ -94,6 +94,17 @@ def test_the_report_gives_intervals_curves_and_the_probability_of_improvement(tm
     assert re.search(r"\| mat \| mappo \(\d\.\d\) \| 2,000 \|", text), text
     assert re.search(r"\| mappo \| mat \(\d+\.\d\) \| not by 3,000 \|", text), text
     assert (tmp_path / "r" / "mamujoco_Ant-4x2.png").stat().st_size > 1000
+
+
+def test_an_interval_is_the_same_on_every_run_whatever_is_reported_beside_it():
+    pytest.importorskip("rliable")
+    from rliable import metrics
+
+    rng = np.random.default_rng(0)
+    mat_scores, mappo_scores = rng.normal(10, 1, (5, 1)), rng.normal(5, 1, (5, 1))
+    alone = interval_estimates({"mat": mat_scores}, metrics.aggregate_mean)[1]["mat"]
+    beside = interval_estimates({"mappo": mappo_scores, "mat": mat_scores}, metrics.aggregate_mean)
+    assert np.array_equal(alone, beside[1]["mat"])
 
 
 @pytest.mark.slow
