@@ -113,9 +113,9 @@ def test_each_update_logs_what_says_whether_learning_can_still_move(tmp_path):
 
 def test_explained_variance_is_one_for_exact_values_and_zero_for_their_mean():
     returns = torch.arange(12.0).reshape(3, 2, 2, 1)
-    shapes = dict.fromkeys(("obs", "actions", "log_probs", "rewards", "terminated", "done"))
+    unread = ("obs", "actions", "log_probs", "rewards", "terminated", "done")
     base = Trajectory(
-        **{k: torch.zeros(3, 2, 2, 1) for k in shapes},
+        **{k: torch.zeros(3, 2, 2, 1) for k in unread},
         values=returns,
         bootstrap=torch.zeros(3, 2, 2, 1),
         last_values=torch.zeros(2, 2, 1),

@@ -144,6 +144,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
         self._steps = 0
+        self._root_qpos = self._moving_root()
         self._start_x = math.nan  # the root's x at the episode's start (`travelled`)
         self.randomization = Randomization.parse(randomize)
         self._randomizer = None
@@ -180,15 +181,20 @@ class MaMuJoCoTeam(ArrayTeam):
             self._randomizer.new_episode(self._random())
         return self._sensed(obs)
 
-    def _root_x(self) -> float:
-        """The root's x position where the scenario's robot moves along x (its first joint a
-        free joint or a slide along x, as Gymnasium's locomotion tasks); NaN for the others."""
+    def _moving_root(self) -> int | None:
+        """The qpos index of the root's x where the scenario's robot moves along x (its first
+        joint a free joint or a slide along x, as Gymnasium's locomotion tasks); else None."""
         model = self._env.single_agent_env.unwrapped.model
-        root = model.jnt_type[0] if model.njnt else None
+        if not model.njnt:
+            return None
+        root = model.jnt_type[0]
         along_x = root == mujoco.mjtJoint.mjJNT_SLIDE and np.allclose(model.jnt_axis[0], (1, 0, 0))
-        if root != mujoco.mjtJoint.mjJNT_FREE and not along_x:
+        return int(model.jnt_qposadr[0]) if root == mujoco.mjtJoint.mjJNT_FREE or along_x else None
+
+    def _root_x(self) -> float:
+        if self._root_qpos is None:
             return math.nan
-        return float(self._env.single_agent_env.unwrapped.data.qpos[model.jnt_qposadr[0]])
+        return float(self._env.single_agent_env.unwrapped.data.qpos[self._root_qpos])
 
     def travelled(self) -> float:
         """How far the robot moved along x in this episode (m; the distance the Gymnasium
