@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from mat_sdk import ppo
 from mat_sdk.flat_params import FlatParameters
 from mat_sdk.model import HAPPO
 from mat_sdk.normalization import ValueNorm
@@ -40,16 +41,12 @@ def update(
     whether every loss was finite."""
     critic = [policy.cfg.n_agents]  # the critic's group comes after the actors'
     size, device = rows["obs"].shape[0], rows["obs"].device
-    per_minibatch = size // config.num_minibatches
     sums = dict.fromkeys(("policy_loss", "value_loss", "entropy", "clip_fraction"), 0.0)
     norms: list[Tensor] = []
     finite = torch.ones((), dtype=torch.bool, device=device)
 
     def minibatches():
-        for _ in range(config.ppo_epochs):
-            order = torch.randperm(size, generator=generator).to(device)
-            for k in range(config.num_minibatches):
-                yield order[k * per_minibatch : (k + 1) * per_minibatch]
+        return ppo.minibatches(size, config.ppo_epochs, config.num_minibatches, generator, device)
 
     def step(loss: Tensor, groups: list[int]) -> None:
         nonlocal finite

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -54,6 +55,25 @@ class LossTerms:
     value: Tensor
     entropy: Tensor
     clip_fraction: Tensor
+
+
+def minibatches(
+    size: int,
+    epochs: int,
+    count: int,
+    generator: torch.Generator | None = None,
+    device: torch.device | str = "cpu",
+) -> Iterator[Tensor]:
+    """An update's minibatches of row indices: `epochs` shuffles of `size` rows, each cut into
+    `count` equal parts (the remainder of `size // count` is left out of that epoch).
+
+    Shuffled on the CPU from `generator` (the trainer's stream, so a resume is exact) whatever
+    the device the indices are used on."""
+    per_minibatch = size // count
+    for _ in range(epochs):
+        order = torch.randperm(size, generator=generator).to(device)
+        for k in range(count):
+            yield order[k * per_minibatch : (k + 1) * per_minibatch]
 
 
 def ppo_loss(

@@ -15,14 +15,14 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from mat_sdk import checkpoint, envs, files, happo
+from mat_sdk import checkpoint, envs, files, happo, ppo
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
@@ -212,30 +212,24 @@ class Trainer:
             self._check_finite(finite)
             return losses
         self.gradients.share(rows)
-        size = rows["obs"].shape[0]
-        minibatch = size // cfg.num_minibatches
         # Accumulate on the device and read once per update: no host sync per minibatch.
         sums = dict.fromkeys(
             ("policy_loss", "value_loss", "entropy", "clip_fraction", "grad_norm"), 0.0
         )
         finite = torch.ones((), dtype=torch.bool, device=self.device)
         count = 0
-        for _ in range(cfg.ppo_epochs):
-            permutation = torch.randperm(size, generator=self.collector.shuffle_generator)
-            permutation = permutation.to(self.device)
-            for k in range(cfg.num_minibatches):
-                idx = permutation[k * minibatch : (k + 1) * minibatch]
-                terms, grad_norm = self.optimizer_step(rows, idx)
-                finite &= torch.isfinite(terms.total)
-                for key, value in (
-                    ("policy_loss", terms.policy),
-                    ("value_loss", terms.value),
-                    ("entropy", terms.entropy),
-                    ("clip_fraction", terms.clip_fraction),
-                    ("grad_norm", grad_norm),
-                ):
-                    sums[key] = sums[key] + value.detach()
-                count += 1
+        for idx in self.minibatches(rows["obs"].shape[0]):
+            terms, grad_norm = self.optimizer_step(rows, idx)
+            finite &= torch.isfinite(terms.total)
+            for key, value in (
+                ("policy_loss", terms.policy),
+                ("value_loss", terms.value),
+                ("entropy", terms.entropy),
+                ("clip_fraction", terms.clip_fraction),
+                ("grad_norm", grad_norm),
+            ):
+                sums[key] = sums[key] + value.detach()
+            count += 1
         self._check_finite(bool(finite))
         return {key: float(value) / count for key, value in sums.items()}
 
@@ -250,6 +244,15 @@ class Trainer:
                 f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
                 "the last good checkpoint is kept"
             )
+
+    def minibatches(self, size: int) -> Iterator[torch.Tensor]:
+        """The row indices of each optimizer step of an update over `size` rows, shuffled
+        from the run's own stream (`ppo.minibatches`)."""
+        cfg = self.config
+        return ppo.minibatches(
+            size, cfg.ppo_epochs, cfg.num_minibatches, self.collector.shuffle_generator,
+            self.device,
+        )  # fmt: skip
 
     def optimizer_step(self, rows: dict[str, torch.Tensor], idx: torch.Tensor):
         """One PPO step on the minibatch `idx` of the update's `rows` (already

@@ -58,15 +58,10 @@ def _keeping_subnormals(step):
 
 def _whole_update(trainer: Trainer, batch: dict[str, torch.Tensor]):
     """One update as the trainer's config shapes it: epochs x minibatches over `batch`."""
-    cfg = trainer.config
-    size = batch["obs"].shape[0]
-    rows = size // cfg.num_minibatches
 
     def run():
-        for _ in range(cfg.ppo_epochs):
-            permutation = torch.randperm(size, device=trainer.device)
-            for k in range(cfg.num_minibatches):
-                trainer.optimizer_step(batch, permutation[k * rows : (k + 1) * rows])
+        for idx in trainer.minibatches(batch["obs"].shape[0]):
+            trainer.optimizer_step(batch, idx)
         if trainer.device.type == "cuda":
             torch.cuda.synchronize()
 
