@@ -9,13 +9,17 @@ and an existing bundle is replaced only with `force=True`.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import logging
 import os
 import shutil
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import torch
 
@@ -223,7 +227,7 @@ def _export(module, args, dynamic_shapes, inputs, outputs, path: Path) -> dict:
     level = registry_log.level
     registry_log.setLevel(logging.ERROR)  # "torchvision is not installed" is noise for us
     try:
-        with warnings.catch_warnings(), torch.no_grad():
+        with warnings.catch_warnings(), torch.no_grad(), torchlib_registry_reused():
             warnings.simplefilter("ignore")
             program = torch.onnx.export(
                 module,
@@ -239,3 +243,35 @@ def _export(module, args, dynamic_shapes, inputs, outputs, path: Path) -> dict:
         registry_log.setLevel(level)
     program.save(str(path))
     return {"inputs": inputs, "outputs": outputs, "opset": OPSET}
+
+
+@functools.cache
+def _torchlib_registry(build, opset_version: int):
+    return build(opset_version=opset_version)
+
+
+@contextlib.contextmanager
+def torchlib_registry_reused() -> Iterator[None]:
+    """Build torchlib's operator registry once per process, not once per graph.
+
+    torch.onnx.export rebuilds it (thousands of ATen overloads looked up) for every graph it
+    exports and only reads it afterwards, so one registry per opset serves every export. This
+    reaches into torch's exporter internals; where they differ from torch 2.13's, exports run
+    as torch wrote them.
+    """
+    try:
+        from torch.onnx._internal.exporter import _registration
+
+        registry_class = _registration.ONNXRegistry
+        original = registry_class.__dict__["from_torchlib"]
+        assert isinstance(original, classmethod)
+        build = original.__get__(None, registry_class)
+    except (ImportError, AttributeError, KeyError, AssertionError):
+        yield
+        return
+
+    def from_torchlib(cls, opset_version=_registration._constants.TORCHLIB_OPSET):
+        return _torchlib_registry(build, opset_version)
+
+    with mock.patch.object(registry_class, "from_torchlib", classmethod(from_torchlib)):
+        yield

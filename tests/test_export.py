@@ -10,7 +10,7 @@ import torch
 from click.testing import CliRunner
 from helpers import make_checkpoint
 
-from mat_export import ExportError, export
+from mat_export import ExportError, export, exporter
 from mat_export import parity as parity_module
 from mat_sdk import checkpoint
 from mat_sdk.cli import main
@@ -64,9 +64,24 @@ def test_mat_bundle_matches_torch_and_describes_itself(mat_bundle):
         assert props["obs_dim"] == on_disk["obs_dim"] and props["algo"] == "mat"
 
 
+def test_torchlibs_registry_is_built_once_while_exporting_and_torch_is_left_as_it_was():
+    from torch.onnx._internal.exporter._registration import ONNXRegistry
+
+    with exporter.torchlib_registry_reused():
+        first = ONNXRegistry.from_torchlib(opset_version=exporter.OPSET)
+        assert ONNXRegistry.from_torchlib(opset_version=exporter.OPSET) is first
+    assert ONNXRegistry.from_torchlib(opset_version=exporter.OPSET) is not first
+
+
 @pytest.mark.slow
-def test_export_is_deterministic(mat_checkpoint, mat_bundle, tmp_path):
+def test_export_is_deterministic_and_builds_torchlibs_registry_once(
+    mat_checkpoint, mat_bundle, tmp_path
+):
+    before = exporter._torchlib_registry.cache_info()
     export(mat_checkpoint, tmp_path / "b")
+    after = exporter._torchlib_registry.cache_info()
+    # the bundle's two torch-exported graphs reuse the registry the fixture's export built
+    assert (after.hits - before.hits, after.misses - before.misses) == (2, 0)
     for name in (
         "encoder.onnx",
         "decoder_step.onnx",
