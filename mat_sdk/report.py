@@ -123,7 +123,11 @@ def write_report(paths: list[Path], out: Path) -> str:
                 per_step = {algo: values[:, None, :]}  # [seeds, 1 task, evaluations]
                 centre, band = interval_estimates(per_step, _iqm_per_evaluation)
                 centres[algo] = (steps, centre[algo])
-                (line,) = axis.plot(steps, centre[algo], label=f"{algo} ({len(values)} seeds)")
+                (line,) = axis.plot(
+                    steps,
+                    centre[algo],
+                    label=f"{algo} ({len(values)} seed{'s' if len(values) > 1 else ''})",
+                )
                 axis.fill_between(steps, band[algo][0], band[algo][1], alpha=0.2,
                                   color=line.get_color())  # fmt: skip
             if len(centres) > 1:
