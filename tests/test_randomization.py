@@ -207,8 +207,12 @@ def test_from_mjcf_takes_a_randomization_and_the_env_option_overrides_it():
     ("given", "message"),
     [
         ({"frction": [0.5, 1]}, r"no factor\(s\) \['frction'\]; its factors: friction"),
-        ({"friction": [1.2, 0.5]}, "friction must be \\[low, high\\] with 0 < low <= high"),
-        ({"friction": 0.5}, "friction must be \\[low, high\\], two finite numbers"),
+        (
+            {"friction": [1.2, 0.5]},
+            "friction must be \\[low, high\\], two finite numbers with low <= high",
+        ),
+        ({"friction": 0.5}, "friction must be \\[low, high\\], two finite numbers with"),
+        ({"friction": [0, 1]}, "friction must be \\[low, high\\] with 0 < low"),
         ({"latency": [0, 1.5]}, "latency is \\[low, high\\] control steps, whole numbers"),
         ({"push": -1}, "push must be a number >= 0 or null"),
         ({"noise": {"joint_pos": "high"}}, "noise maps signal names to levels"),

@@ -134,8 +134,13 @@ def test_terms_measure_what_they_name():
     team.physics.forward()
     assert terms.Tilt(60).ends(step) and terms.Upright().value(step) == pytest.approx(-1.0)
     assert terms.IllegalContact(("base",)).ends(step)
-    with pytest.raises(ValueError, match="must be finite with low <= high"):
+    with pytest.raises(
+        ValueError,
+        match=r"VelocityCommand.vx must be \[low, high\], two finite numbers with low <= high",
+    ):
         terms.VelocityCommand(vx=(1.0, 0.0))
+    with pytest.raises(ValueError, match="VelocityCommand.vy must be"):
+        terms.VelocityCommand(vy="01")  # not the range (0.0, 1.0)
 
 
 def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import numbers
 import traceback
 import warnings
 from collections.abc import Callable, Mapping
@@ -11,6 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from mat_sdk.envs.checks import is_real
 
 
 def checked_episode_limit(given: int | None, default: int) -> int:
@@ -88,7 +89,7 @@ def real_actions(array: np.ndarray, where: Callable[[tuple[int, ...]], str]) -> 
     if array.dtype.kind in "fiu":
         return array.astype(np.float64, copy=False)
     if array.dtype.kind == "O":
-        index = next((i for i in np.ndindex(array.shape) if not _is_real(array[i])), None)
+        index = next((i for i in np.ndindex(array.shape) if not is_real(array[i])), None)
         if index is None:
             return array.astype(np.float64)
     else:
@@ -98,10 +99,6 @@ def real_actions(array: np.ndarray, where: Callable[[tuple[int, ...]], str]) -> 
     raise ValueError(
         f"{where(index)}: action must be a real number, got {value!r} ({type(value).__name__})"
     )
-
-
-def _is_real(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
 
 
 def invalid_action(

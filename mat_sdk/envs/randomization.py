@@ -24,6 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.checks import finite_range, is_real
 from mat_sdk.envs.trunk import Trunk
 
 Range = tuple[float, float]
@@ -68,12 +69,12 @@ class Randomization:
         _check_range(self, "payload", positive=False)
         for name in ("com", "start", "push"):
             value = getattr(self, name)
-            if value is not None and not (_real(value) and 0 <= value < math.inf):
+            if value is not None and not (is_real(value) and 0 <= value < math.inf):
                 raise ValueError(f"randomize {name} must be a number >= 0 or null, got {value!r}")
         _check_range(self, "push_every", positive=True, optional=False)
         if self.latency is not None:
-            pair = _pair(self.latency, "latency")
-            if not all(float(v).is_integer() and v >= 0 for v in pair) or pair[0] > pair[1]:
+            pair = finite_range(self.latency, "randomize latency")
+            if not all(v.is_integer() and v >= 0 for v in pair):
                 raise ValueError(
                     f"randomize latency is [low, high] control steps, whole numbers >= 0, got "
                     f"{self.latency!r}"
@@ -82,8 +83,9 @@ class Randomization:
         if not isinstance(self.per_geom_friction, bool):
             raise ValueError("randomize per_geom_friction must be true or false")
         if self.noise is not None:
-            if not isinstance(self.noise, Mapping) or not all(
-                isinstance(k, str) and _real(v) and 0 <= v < math.inf for k, v in self.noise.items()
+            levels = self.noise.items() if isinstance(self.noise, Mapping) else None
+            if levels is None or not all(
+                isinstance(k, str) and is_real(v) and 0 <= v < math.inf for k, v in levels
             ):
                 raise ValueError(
                     'randomize noise maps signal names to levels >= 0 (e.g. {"joint_pos": '
@@ -134,29 +136,13 @@ class Randomization:
 _NOT_FACTORS = ("per_geom_friction", "push_every")
 
 
-def _real(value: Any) -> bool:
-    return isinstance(value, int | float | np.floating | np.integer) and not isinstance(value, bool)
-
-
-def _pair(value: Any, name: str) -> tuple[float, float]:
-    if (
-        isinstance(value, str)
-        or not isinstance(value, Sequence)
-        or len(value) != 2
-        or not all(_real(v) and math.isfinite(v) for v in value)
-    ):
-        raise ValueError(f"randomize {name} must be [low, high], two finite numbers, got {value!r}")
-    return float(value[0]), float(value[1])
-
-
 def _check_range(config: Randomization, name: str, positive: bool, optional: bool = True) -> None:
     value = getattr(config, name)
     if value is None and optional:
         return
-    low, high = _pair(value, name)
-    if low > high or (positive and low <= 0):
-        need = "0 < low <= high" if positive else "low <= high"
-        raise ValueError(f"randomize {name} must be [low, high] with {need}, got {value!r}")
+    low, high = finite_range(value, f"randomize {name}")
+    if positive and low <= 0:
+        raise ValueError(f"randomize {name} must be [low, high] with 0 < low, got {value!r}")
     object.__setattr__(config, name, (low, high))
 
 

@@ -13,7 +13,6 @@ the same way for the built-in robots, which are `RobotSpec`s too (`robots.py`).
 from __future__ import annotations
 
 import math
-import numbers
 import os
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -27,6 +26,7 @@ from dm_control.rl import control
 from mat_sdk.envs import terms
 from mat_sdk.envs.actuation import JointTargets
 from mat_sdk.envs.base import user_call
+from mat_sdk.envs.checks import finite_range, is_real
 from mat_sdk.envs.features import Observation
 from mat_sdk.envs.model_task import ModelEnvironment
 from mat_sdk.envs.randomization import Randomization
@@ -35,10 +35,6 @@ Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
 # Physics steps per env step at most: more is no control rate, and one env step would run
 # for minutes without answering Ctrl-C.
 MAX_SUBSTEPS = 1000
-
-
-def _real(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -284,9 +280,9 @@ def from_mjcf(
         or not 1 <= substeps <= MAX_SUBSTEPS
     ):
         raise ValueError(f"substeps must be an integer in 1..{MAX_SUBSTEPS}, got {substeps!r}")
-    if not _real(reset_noise) or not 0 <= reset_noise < math.inf:
+    if not is_real(reset_noise) or not 0 <= reset_noise < math.inf:
         raise ValueError(f"reset_noise must be a finite number >= 0, got {reset_noise!r}")
-    shift, turn = terms.pair(root_noise, "root_noise")
+    shift, turn = finite_range(root_noise, "root_noise")
     if shift < 0 or turn < 0:
         raise ValueError(f"root_noise must be two numbers >= 0, got {root_noise!r}")
     if keyframe is not None and not isinstance(keyframe, str):

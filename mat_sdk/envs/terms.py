@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.checks import finite_range
 from mat_sdk.envs.trunk import Contacts, Trunk
 
 
@@ -63,7 +64,7 @@ class VelocityCommand:
 
     def __post_init__(self):
         for name in self.names:
-            low, high = pair(getattr(self, name), f"VelocityCommand.{name}")
+            low, high = finite_range(getattr(self, name), f"VelocityCommand.{name}")
             object.__setattr__(self, name, (low, high))
 
     def sample(self, random: np.random.RandomState) -> np.ndarray:
@@ -78,16 +79,6 @@ class VelocityCommand:
                 f"command must be three finite numbers ({', '.join(self.names)}), got {command!r}"
             )
         return value
-
-
-def pair(value, name: str) -> tuple[float, float]:
-    try:
-        low, high = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (low, high) pair, got {value!r}") from None
-    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
-    return low, high
 
 
 # ------------------------------------------------------------------------- rewards

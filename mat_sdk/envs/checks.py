@@ -1,0 +1,31 @@
+"""Checks of the numbers a config or an env option gives: a real number is not a bool or a
+string that numpy or `float` would quietly coerce, and a range is two finite numbers in order."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+
+def is_real(value: Any) -> bool:
+    """A real number (numpy's too), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+
+
+def finite_range(value: Any, name: str) -> tuple[float, float]:
+    """`value` as a (low, high) range: two finite real numbers with low <= high."""
+    if (
+        isinstance(value, str)
+        or not isinstance(value, Sequence | np.ndarray)
+        or len(value) != 2
+        or not all(is_real(v) and math.isfinite(v) for v in value)
+        or value[0] > value[1]
+    ):
+        raise ValueError(
+            f"{name} must be [low, high], two finite numbers with low <= high, got {value!r}"
+        )
+    return float(value[0]), float(value[1])
