@@ -53,6 +53,7 @@ def finetune(
     eval_episodes: int = 10,
     reset_optimizer: bool = True,
     lr: float | None = None,
+    action_std: float | None = None,
     resume: bool = False,
     callback: Callable[[Trainer, dict], bool | None] | None = None,
     progress_bar: bool = True,
@@ -61,22 +62,29 @@ def finetune(
 ) -> FinetuneResult:
     """Zero-shot evaluation, `steps` env steps of PPO from the pre-trained weights, evaluation.
 
-    `env` defaults to the checkpoint's env; `faults` describe the change; `options` are any
-    TrainConfig fields (num_envs, seed, ...). With `resume=True`, continues the run in
-    `out_dir` after an interruption, as it was started (`options` then may only say how to
-    run: device, workers, update_workers, checkpoint_every). Writes OUT/finetune.json with
+    `env` defaults to the checkpoint's env; `faults` describe the change; `action_std`
+    re-opens exploration (a continuous policy's action std set afresh, e.g. 0.3, where a
+    long training left it near 0.1); `options` are any TrainConfig fields (num_envs, seed,
+    ...). With `resume=True`, continues the run in `out_dir` after an interruption, as it
+    was started (`options` then may only say how to run: device, workers, update_workers,
+    checkpoint_every). Writes OUT/finetune.json with
     both evaluations. Without `env`, a `module:function` env id that the checkpoint records
     is imported only with `trust_env_code=True`.
     """
     out = Path(out_dir) if out_dir is not None else None
     with files.RunLock(out) if out else contextlib.nullcontext():
+        if resume and action_std is not None:
+            raise ValueError(
+                "action_std sets the std where a fine-tuning run starts; a resumed run goes on "
+                "with the std it has learned: resume without it"
+            )
         if resume:  # as it was started: what is given again must be what it was
             given = {**options, **({"faults": faults} if faults else {}), "lr": lr}
             given = {k: v for k, v in given.items() if v is not None}
             trainer, zero_shot = _resumed(out, env, trust_env_code, given)
         else:
-            trainer = _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code,
-                               options)  # fmt: skip
+            trainer = _started(checkpoint, env, faults, reset_optimizer, lr, action_std, out,
+                               trust_env_code, options)  # fmt: skip
             zero_shot = trainer.evaluate(eval_episodes)
             if out:
                 _write_summary(out / SUMMARY_NAME, trainer, checkpoint, zero_shot, None)
@@ -93,14 +101,16 @@ def default_out(env: str | None, faults: dict[str, str] | None) -> Path:
     return Path("runs") / f"finetune-{label.replace(':', '_')}"
 
 
-def _started(checkpoint, env, faults, reset_optimizer, lr, out, trust_env_code, options) -> Trainer:
+def _started(
+    checkpoint, env, faults, reset_optimizer, lr, action_std, out, trust_env_code, options
+) -> Trainer:
     if out is not None and (out / CHECKPOINT_NAME).exists():
         raise FileExistsError(
             f"{out / CHECKPOINT_NAME} exists; resume that run or choose another out_dir"
         )
     return Trainer.from_pretrained(
         checkpoint, env, faults, reset_optimizer, lr, out_dir=out,
-        trust_env_code=trust_env_code, **options,
+        trust_env_code=trust_env_code, action_std=action_std, **options,
     )  # fmt: skip
 
 

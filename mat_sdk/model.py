@@ -22,6 +22,7 @@ observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All t
 
 from __future__ import annotations
 
+import math
 from dataclasses import MISSING, asdict, dataclass, fields
 
 import torch
@@ -330,6 +331,14 @@ def official_std(log_std: Tensor) -> Tensor:
     return torch.sigmoid(log_std) * 0.5
 
 
+MAX_STD = 0.5  # `official_std`'s bound
+
+
+def official_log_std(std: float) -> float:
+    """The `log_std` that `official_std` maps to `std` (0 < std < 0.5)."""
+    return math.log(2 * std / (1 - 2 * std))
+
+
 class PolicyNetwork(nn.Module):
     """The interface the trainer uses: teacher-forced `evaluate`, sampling `act`."""
 
@@ -344,6 +353,18 @@ class PolicyNetwork(nn.Module):
 
     def std(self) -> Tensor | None:
         return official_std(self.log_std) if self.cfg.action_type == "continuous" else None
+
+    def reset_std(self, std: float) -> None:
+        """Set every agent's action std to `std`: fine-tuning re-opens the exploration that
+        training closed, to find a new gait rather than tune the old one."""
+        if self.cfg.action_type != "continuous":
+            raise ValueError("an action std is for continuous actions; this policy's are discrete")
+        if isinstance(std, bool) or not isinstance(std, int | float) or not 0 < std < MAX_STD:
+            raise ValueError(f"the action std must be in (0, {MAX_STD}), got {std!r}")
+        with torch.no_grad():
+            for name, parameter in self.named_parameters():
+                if name.split(".")[-1] == "log_std":
+                    parameter.fill_(official_log_std(std))
 
     def values(self, obs: Tensor) -> Tensor:
         raise NotImplementedError

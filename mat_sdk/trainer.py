@@ -322,6 +322,7 @@ class Trainer:
         lr: float | None = None,
         out_dir: str | Path | None = None,
         trust_env_code: bool = False,
+        action_std: float | None = None,
         **options: Any,
     ) -> Trainer:
         """A new run that starts from a trained policy, for a changed robot (few-shot).
@@ -329,7 +330,8 @@ class Trainer:
         Takes the checkpoint's weights, model size, observation normaliser, value
         normaliser and hyperparameters; `env`, `faults`, `lr` and `options` (any
         TrainConfig field, e.g. num_envs, seed) change what is trained on and how. Step
-        counts start from 0. `reset_optimizer=False` keeps the Adam moments too.
+        counts start from 0. `reset_optimizer=False` keeps the Adam moments too;
+        `action_std` sets a continuous policy's action std afresh (`PolicyNetwork.reset_std`).
 
         The changed robot must give the same observation and action sizes (a removed agent
         keeps its team-mates' one-hot ids, so those stay the same; `swimmer-N` has no ids, so
@@ -362,6 +364,8 @@ class Trainer:
                 payload, checkpoint_path, policy=trainer.policy, obs_norm=trainer.obs_norm,
                 value_norm=trainer.value_norm, lr=trainer.config.lr, **keep,
             )  # fmt: skip
+            if action_std is not None:
+                trainer.policy.reset_std(action_std)
         except BaseException:
             trainer.close()
             raise

@@ -4,8 +4,9 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
-from helpers import GAME
+from helpers import GAME, make_checkpoint
 
 from mat_sdk import recipes
 from mat_sdk.cli import main
@@ -78,3 +79,27 @@ def test_a_swimmer_policy_finetunes_on_a_longer_swimmer(tmp_path):
             assert (value == weights[name]).all(), name
         longer.learn(20, progress_bar=False)
         assert longer.predict(np.zeros((5, longer.env.obs_dim))).shape == (5, 1)
+
+
+@pytest.mark.parametrize("algo", ["mat", "happo"])
+def test_action_std_starts_fine_tuning_from_a_wider_std_and_nothing_else_changes(algo, tmp_path):
+    path = make_checkpoint(tmp_path / f"{algo}.pt", algo=algo)
+    with Trainer.from_pretrained(path) as kept:
+        before = {k: v.clone() for k, v in kept.policy.state_dict().items()}
+        assert not torch.allclose(kept.policy.std(), torch.tensor(0.2))
+    with Trainer.from_pretrained(path, action_std=0.2) as widened:
+        assert torch.allclose(widened.policy.std(), torch.tensor(0.2))  # every agent's
+        for name, value in widened.policy.state_dict().items():
+            assert name.endswith("log_std") or (value == before[name]).all(), name
+    for bad in (0.5, 0.0, True):
+        with pytest.raises(ValueError, match=r"action std must be in \(0, 0.5\)"):
+            Trainer.from_pretrained(path, action_std=bad)
+
+
+def test_action_std_is_refused_for_discrete_actions_and_on_resume(pretrained, tmp_path):
+    with pytest.raises(ValueError, match="continuous actions; this policy's are discrete"):
+        Trainer.from_pretrained(pretrained, faults=CHANGE, action_std=0.3)
+    runner = CliRunner()
+    args = ["finetune", str(pretrained), "--fault", "agent_1=remove", "--out", str(tmp_path)]
+    result = runner.invoke(main, [*args, "--steps", "512", "--resume", "--action-std", "0.3"])
+    assert result.exit_code == 1 and "resume without it" in result.output, result.output

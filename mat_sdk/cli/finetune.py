@@ -39,6 +39,12 @@ FINETUNE_OPTIONS = {
     "--episodes", default=10, show_default=True, help="Evaluation episodes (before/after)."
 )
 @click.option("--keep-optimizer", is_flag=True, help="Keep the checkpoint's Adam moments.")
+@click.option(
+    "--action-std",
+    type=float,
+    help="Start from this action std, 0-0.5 (e.g. 0.3), to explore again for a new gait "
+    "[the checkpoint's].",
+)
 @click.option("--resume", is_flag=True, help="Continue an interrupted fine-tuning run in OUT.")
 @set_option()
 @trust_option()
@@ -53,6 +59,7 @@ def finetune(
     lr,
     episodes,
     keep_optimizer,
+    action_std,
     resume,
     settings,
     trust_env_code,
@@ -72,6 +79,8 @@ def finetune(
     Examples:
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat finetune runs/swimmer6/checkpoint.pt swimmer-9 --steps 50000 --out runs/sw9
+      mat finetune runs/go2/checkpoint.pt --fault FR_calf_joint=zero --steps 99200 \\
+          --lr 1e-3 --action-std 0.3 --trust-env-code   # a new gait: explore again
     """
     import numpy as np
 
@@ -92,6 +101,7 @@ def finetune(
             eval_episodes=episodes,
             reset_optimizer=not keep_optimizer,
             lr=lr,
+            action_std=action_std,
             resume=resume,
             progress_bar=not quiet,
             trust_env_code=trust_env_code,
