@@ -67,17 +67,17 @@ def finetune(
     long training left it near 0.1); `options` are any TrainConfig fields (num_envs, seed,
     ...). With `resume=True`, continues the run in `out_dir` after an interruption, as it
     was started (`options` then may only say how to run: device, workers, update_workers,
-    checkpoint_every). Writes OUT/finetune.json with
-    both evaluations. Without `env`, a `module:function` env id that the checkpoint records
-    is imported only with `trust_env_code=True`.
+    checkpoint_every). Writes OUT/finetune.json with both evaluations. Without `env`, a
+    `module:function` env id that the checkpoint records is imported only with
+    `trust_env_code=True`.
     """
+    if resume and action_std is not None:
+        raise ValueError(
+            "action_std sets the std where a fine-tuning run starts; a resumed run goes on "
+            "with the std it has learned: resume without it"
+        )
     out = Path(out_dir) if out_dir is not None else None
     with files.RunLock(out) if out else contextlib.nullcontext():
-        if resume and action_std is not None:
-            raise ValueError(
-                "action_std sets the std where a fine-tuning run starts; a resumed run goes on "
-                "with the std it has learned: resume without it"
-            )
         if resume:  # as it was started: what is given again must be what it was
             given = {**options, **({"faults": faults} if faults else {}), "lr": lr}
             given = {k: v for k, v in given.items() if v is not None}

@@ -103,3 +103,4 @@ def test_action_std_is_refused_for_discrete_actions_and_on_resume(pretrained, tm
     args = ["finetune", str(pretrained), "--fault", "agent_1=remove", "--out", str(tmp_path)]
     result = runner.invoke(main, [*args, "--steps", "512", "--resume", "--action-std", "0.3"])
     assert result.exit_code == 1 and "resume without it" in result.output, result.output
+    assert not any(tmp_path.iterdir())  # refused before the run directory was touched
