@@ -37,7 +37,7 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=100.0, help="control rate in Hz")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to measure")
     parser.add_argument("--warmup", type=float, default=1.0, help="seconds run before measuring")
-    parser.add_argument("--fault", action="append", default=[], metavar="NAME=zero|remove")
+    parser.add_argument("--fault", action="append", default=[], metavar="NAME=zero|remove|weak:S")
     parser.add_argument("--cpu", type=int, help="pin the process to this core")
     parser.add_argument(
         "--fifo", type=int, metavar="PRIORITY", help="SCHED_FIFO at this priority (1-99)"

@@ -19,7 +19,7 @@ from mat_sdk.finetune import finetune
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("checkpoint", help="a checkpoint trained on the intact robot")
-    parser.add_argument("--fault", default="bthigh=zero", metavar="NAME=zero|remove")
+    parser.add_argument("--fault", default="bthigh=zero", metavar="NAME=zero|remove|weak:S")
     parser.add_argument("--steps", type=int, default=20_000, help="fine-tuning env steps")
     parser.add_argument("--out", type=Path, default=Path("runs/finetune-example"))
     args = parser.parse_args()

@@ -168,7 +168,9 @@ class TrainConfig:
                 "env_options cannot set seed: env copy i is seeded with the run's seed + i"
             )
         if not all(isinstance(mode, str) for mode in self.faults.values()):
-            raise ValueError(f"faults must map names to 'zero' or 'remove', got {self.faults!r}")
+            raise ValueError(
+                f"faults must map names to 'zero', 'remove' or 'weak:S', got {self.faults!r}"
+            )
         if self.algo == "happo" and (self.update_workers or self.compile):
             raise ValueError(
                 "HAPPO updates its agents one after another in this process: update_workers "

@@ -51,7 +51,10 @@ def test_user_mistakes_give_one_line_and_exit_code():
     assert "unknown environment id 'cheetah-9x9'" in result.output
     assert "Traceback" not in result.output
     result = CliRunner().invoke(main, ["rollout", "cheetah-6x1", "--fault", "bfoot"])
-    assert result.exit_code != 0 and "NAME=zero or NAME=remove" in result.output
+    assert result.exit_code != 0 and "NAME=zero, NAME=remove or NAME=weak:S" in result.output
+    result = CliRunner().invoke(main, ["rollout", "cheetah-6x1", "--fault", "bfoot=weak:2"])
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    assert "fault bfoot='weak:2': a weak motor keeps a fraction" in result.output
 
 
 TINY_TRAIN = [

@@ -370,9 +370,11 @@ def test_mamujoco_faults_name_an_agent_or_a_joint():
     by_joint = ctrl_after_full_push({"bfoot": "zero"})  # actuators: bthigh bshin bfoot ...
     assert by_joint.tolist() == [1.0, 1.0, 0.0, 1.0, 1.0, 1.0]
     assert ctrl_after_full_push({"agent_2": "zero"}).tolist() == by_joint.tolist()
+    weak = ctrl_after_full_push({"bfoot": "weak:0.25"})  # torque motors: a quarter the torque
+    assert weak.tolist() == [1.0, 1.0, 0.25, 1.0, 1.0, 1.0]
     with pytest.raises(ValueError, match="neither an agent nor an actuated joint.*joints: bthigh"):
         envs.make_team("mamujoco:HalfCheetah-6x1", faults={"tail": "zero"})
-    with pytest.raises(ValueError, match="mode 'zero' only"):
+    with pytest.raises(ValueError, match="modes 'zero' and 'weak:S' only"):
         envs.make_team("mamujoco:HalfCheetah-6x1", faults={"bfoot": "remove"})
 
 

@@ -300,3 +300,16 @@ def test_bad_sweeps_get_one_line_naming_the_problem(go2_checkpoint, arguments, m
     result = CliRunner().invoke(main, ["eval", str(go2_checkpoint), "--trust-env-code", *arguments])
     assert result.exit_code != 0 and message in result.output, result.output
     assert "Traceback" not in result.output
+
+
+def test_strength_randomization_scales_a_weak_motor_from_its_weakened_force():
+    plain = envs.make_team(GO2, seed=0)
+    weak = envs.make_team(
+        GO2, seed=0, faults={"FR_calf_joint": "weak:0.5"}, randomize=_only(strength=[1.1, 1.2])
+    )
+    weak.reset(seed=0)
+    knee = plain.physics.model.ptr.actuator("FR_calf").id
+    nominal = plain.physics.model.ptr.actuator_gainprm[:, 0]
+    scale = weak.physics.model.ptr.actuator_gainprm[:, 0] / nominal
+    assert 0.55 <= scale[knee] <= 0.6  # 0.5 x a draw in 1.1-1.2
+    assert ((np.delete(scale, knee) >= 1.1) & (np.delete(scale, knee) <= 1.2)).all()

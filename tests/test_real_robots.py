@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 from helpers import TINY
@@ -266,3 +267,29 @@ def test_every_command_of_the_real_robot_tutorial_runs(tmp_path):
         assert run.returncode == 0, f"{line}\n{run.stdout}\n{run.stderr}"
         outputs.append(run.stdout)
     assert "forward speed" in outputs[1] and "falls" in outputs[3]
+
+
+@pytest.mark.parametrize("env_id", ["go2:walk", "go2:walk_torque"])
+def test_a_weak_fault_scales_that_motors_force_and_no_other(env_id):
+    """A position actuator (kp, kv, force limit) and a torque motor behind the PD layer alike:
+    at the same state and controls the weak knee gives 0.4 of its force, the rest the same."""
+    forces = []
+    for faults in ({}, {"FR_calf_joint": "weak:0.4"}):
+        team = envs.make_team(env_id, faults=faults, seed=0)
+        team.reset(seed=0)
+        data = team.physics.data.ptr
+        data.ctrl[:] = np.clip(data.ctrl + 0.3, *team.physics.model.ptr.actuator_ctrlrange.T)
+        mujoco.mj_forward(team.physics.model.ptr, data)
+        forces.append(data.actuator_force.copy())
+    knee = team.physics.model.ptr.actuator("FR_calf").id
+    assert abs(forces[0][knee]) > 1.0
+    np.testing.assert_allclose(forces[1][knee], 0.4 * forces[0][knee])
+    others = np.arange(len(forces[0])) != knee
+    np.testing.assert_array_equal(forces[1][others], forces[0][others])
+    assert team.agents == envs.make_team(env_id).agents  # the agent stays, its joint works
+
+
+@pytest.mark.parametrize("mode", ["weak:0", "weak:1", "weak:1.5", "weak:nan", "weak:", "weak:x"])
+def test_a_weak_fault_outside_0_to_1_is_refused_naming_it(mode):
+    with pytest.raises(ValueError, match=f"fault FR_calf_joint='{mode}'.*strictly between 0 and 1"):
+        envs.make_team("go2:walk", faults={"FR_calf_joint": mode})

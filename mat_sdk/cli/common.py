@@ -94,22 +94,25 @@ def resumable(checkpoint: Path, resume: str) -> Iterator[None]:
 
 
 def parse_faults(values: tuple[str, ...]) -> dict[str, str]:
-    """`("bfoot=zero", "agent_2=remove")` -> `{"bfoot": "zero", "agent_2": "remove"}`."""
+    """`("bfoot=zero", "agent_2=remove", "FR_calf_joint=weak:0.5")` -> `{"bfoot": "zero",
+    ...}`. The env checks a weak motor's fraction (0 < S < 1) and the names."""
     faults = {}
     for value in values:
         name, sep, mode = value.partition("=")
-        if not sep or not name or mode not in ("zero", "remove"):
+        if not sep or not name or not (mode in ("zero", "remove") or mode.startswith("weak:")):
             raise click.BadParameter(
-                f"{value!r}: use NAME=zero or NAME=remove", param_hint="--fault"
+                f"{value!r}: use NAME=zero, NAME=remove or NAME=weak:S (S: the torque a weak "
+                f"motor keeps, e.g. 0.5)",
+                param_hint="--fault",
             )
         faults[name] = mode
     return faults
 
 
 def fault_option(purpose: str) -> Callable:
-    """`--fault NAME=zero|remove`, repeatable (see `parse_faults`)."""
+    """`--fault NAME=zero|remove|weak:S`, repeatable (see `parse_faults`)."""
     return click.option(
-        "--fault", "faults", multiple=True, metavar="NAME=zero|remove", help=purpose
+        "--fault", "faults", multiple=True, metavar="NAME=zero|remove|weak:S", help=purpose
     )
 
 

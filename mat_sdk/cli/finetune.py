@@ -21,7 +21,7 @@ from mat_sdk.cli.common import (
 FINETUNE_OPTIONS = {
     "env": "the ENV_ID argument",
     "more_envs": "the ENV_ID arguments after the first",
-    "faults": "--fault NAME=zero|remove",
+    "faults": "--fault NAME=zero|remove|weak:S",
     "lr": "--lr",
 }
 

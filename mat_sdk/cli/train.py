@@ -33,7 +33,7 @@ TRAIN_OPTIONS = {
     "update_workers": "--update-workers",
     "seed": "--seed",
     "device": "--device",
-    "faults": "--fault NAME=zero|remove",
+    "faults": "--fault NAME=zero|remove|weak:S",
     "ray": "--ray",
 }
 

@@ -21,10 +21,12 @@ Options (keywords of `make`, `make_vec` and `make_team`):
     seed           random stream of the env (initial pose, target)
     randomize      domain randomization: true (every factor at its default range), or a
                    mapping of factors, e.g. {"payload": [0, 2], "push": null} (robots)
-Faults: `{"<agent name or joint name>": "zero" | "remove"}`. "zero" leaves the agent in the
-team with its actuator(s) producing nothing; "remove" takes the agent out of the team (its
-actuators produce nothing) so the agent count drops. Remaining agents keep their names and
-their one-hot ids, so a policy trained on the full robot still recognises them.
+Faults: `{"<agent name or joint name>": "zero" | "remove" | "weak:S"}`. "zero" leaves the
+agent in the team with its actuator(s) taking no action (a position actuator holds its start
+target); "remove" takes the agent out of the team (its actuators produce nothing) so the agent
+count drops; "weak:S" leaves the actuator(s) S of their force, 0 < S < 1. Remaining agents
+keep their names and their one-hot ids, so a policy trained on the full robot still
+recognises them.
 Actions are in [-1, 1] (mapped onto each actuator's control range); finite values outside
 are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueError`.
 `coordination-N`, a small discrete game, takes choices 0..N-1 instead (`Discrete(N)`).

@@ -109,3 +109,17 @@ def target_map(
         qpos, np.array(dof, dtype=np.intp), start_qpos[qpos].copy(), float(targets.scale),
         low, high, pd, float(targets.kp or 0.0), float(targets.kd or 0.0),
     )  # fmt: skip
+
+
+def weaken(model: mujoco.MjModel, strengths: dict[int, float]) -> None:
+    """Make each actuator produce `strengths[actuator]` times its force, in the model: its
+    gain, its bias (a position actuator's kp and kv) and its force limits scaled alike, so
+    the force at every control and state, and the most it can give, shrink by that factor.
+    Domain randomization scales from these values, as from any other motor's."""
+    for actuator, strength in strengths.items():
+        if model.actuator_gaintype[actuator] != int(mujoco.mjtGain.mjGAIN_FIXED):
+            name = model.actuator(actuator).name or f"actuator {actuator}"
+            raise ValueError(f"a weak fault needs a fixed-gain actuator; {name} has another gain")
+        model.actuator_gainprm[actuator, 0] *= strength
+        model.actuator_biasprm[actuator, :3] *= strength
+        model.actuator_forcerange[actuator] *= strength

@@ -31,11 +31,13 @@ import numpy as np
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
     ArrayTeam,
+    check_faults,
     checked_episode_limit,
     diverged,
     end_diverged,
     position_features,
     render_failed,
+    weak_strength,
 )
 from mat_sdk.envs.randomization import Randomization, Randomizer
 
@@ -213,7 +215,9 @@ class MaMuJoCoTeam(ArrayTeam):
         return packed
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        actions = np.clip(actions, -1.0, 1.0) * self._action_mask  # faults zero their entries
+        actions = (
+            np.clip(actions, -1.0, 1.0) * self._action_mask
+        )  # faults silence or weaken entries
         per_agent = {
             name: actions[row, : self.action_widths[row]]
             for row, name in enumerate(self.possible_agents)  # padding's actions are dropped
@@ -237,12 +241,15 @@ class MaMuJoCoTeam(ArrayTeam):
         return packed, reward, bool(terminations[first]), truncated
 
     def _fault_mask(self, faults: Mapping[str, str]) -> np.ndarray:
-        """`[n, action_width]`: 0 where a "zero" fault silences the entry's actuator, else 1.
+        """`[n, action_width]`: each entry's torque fraction: 0 where a "zero" fault silences
+        the entry's actuator, S where a "weak:S" fault weakens it (the action scaled: these
+        are torque motors), else 1.
 
         A fault names an agent (all its actuators) or a joint by its MaMuJoCo label
         (`bfoot`), as for our own robots; "remove" is not offered, since a MaMuJoCo
         scenario fixes its team.
         """
+        check_faults(faults)
         joints = {
             node.label: (row, col)
             for row, partition in enumerate(self._env.agent_action_partitions)
@@ -250,15 +257,16 @@ class MaMuJoCoTeam(ArrayTeam):
         }
         mask = np.ones((self.n_agents, self.action_width))
         for name, mode in faults.items():
-            if mode != "zero":
+            if mode == "remove":
                 raise ValueError(
-                    f"MaMuJoCo faults support mode 'zero' only (a scenario fixes its team); "
-                    f"got {name}={mode}"
+                    f"MaMuJoCo faults support modes 'zero' and 'weak:S' only (a scenario fixes "
+                    f"its team); got {name}={mode}"
                 )
+            strength = 0.0 if mode == "zero" else weak_strength(mode)
             if name in self.agents:
-                mask[self.agents.index(name)] = 0.0
+                mask[self.agents.index(name)] = strength
             elif name in joints:
-                mask[joints[name]] = 0.0
+                mask[joints[name]] = strength
             else:
                 raise ValueError(
                     f"fault names {name!r}, which is neither an agent nor an actuated joint of "

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.actuation import target_map
+from mat_sdk.envs.actuation import target_map, weaken
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
     ArrayTeam,
@@ -36,6 +36,7 @@ from mat_sdk.envs.base import (
     end_diverged,
     position_features,
     render_failed,
+    weak_strength,
 )
 from mat_sdk.envs.decomposition import (
     actuator_joints,
@@ -105,7 +106,8 @@ class RobotTeam(ArrayTeam):
         self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
         self.possible_agents = spec.names()
         self.faults = dict(faults or {})
-        zeroed, removed = self._resolve_faults(self.faults)
+        zeroed, removed, weakened = self._resolve_faults(self.faults)
+        weaken(self._model, weakened)
         self.active = [i for i in range(len(self.team)) if i not in removed]
         self.agents = [self.possible_agents[i] for i in self.active]
         self.n_agents = len(self.active)
@@ -138,22 +140,28 @@ class RobotTeam(ArrayTeam):
         """MuJoCo names of the joints an agent drives."""
         return [self._model.joint(j).name for j in self.team[agent].joints]
 
-    def _resolve_faults(self, faults: Mapping[str, str]) -> tuple[set[int], set[int]]:
-        """Map `{agent or joint name: mode}` to zeroed actuators and removed agents."""
+    def _resolve_faults(
+        self, faults: Mapping[str, str]
+    ) -> tuple[set[int], set[int], dict[int, float]]:
+        """Map `{agent or joint name: mode}` to zeroed actuators, removed agents and weak
+        actuators (with the torque each keeps)."""
         zeroed: set[int] = set()
         removed: set[int] = set()
+        weakened: dict[int, float] = {}
         check_faults(faults)
         for name, mode in faults.items():
             agents, actuators = self._fault_target(name)
             if mode == "remove":
                 removed.update(agents)
-            else:
+            elif mode == "zero":
                 zeroed.update(actuators)
+            else:
+                weakened.update(dict.fromkeys(actuators, weak_strength(mode)))
         if len(removed) == len(self.team):
             raise ValueError("faults remove every agent; at least one must stay")
         for agent in removed:
             zeroed.update(self.team[agent].actuators)
-        return zeroed, removed
+        return zeroed, removed, weakened
 
     def _fault_target(self, name: str) -> tuple[list[int], list[int]]:
         if name in self.possible_agents:
