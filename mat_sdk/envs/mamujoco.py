@@ -215,9 +215,8 @@ class MaMuJoCoTeam(ArrayTeam):
         return packed
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        actions = (
-            np.clip(actions, -1.0, 1.0) * self._action_mask
-        )  # faults silence or weaken entries
+        # faults silence or weaken entries
+        actions = np.clip(actions, -1.0, 1.0) * self._action_mask
         per_agent = {
             name: actions[row, : self.action_widths[row]]
             for row, name in enumerate(self.possible_agents)  # padding's actions are dropped
