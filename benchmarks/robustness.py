@@ -44,7 +44,9 @@ def main(groups, sweeps, episodes, env_options, out: Path) -> None:
         if not paths[label]:
             raise click.BadParameter(f"{pattern!r} matches no checkpoint", param_hint="--group")
     lines = [f"{episodes} episodes per point, env options {options or 'none'}; per group the "
-             "mean over its seeds, the seeds' range in brackets.", ""]  # fmt: skip
+             "mean over its seeds, the seeds' range in brackets, then each checkpoint's own "
+             "speed / falls.", ""]  # fmt: skip
+    lines += [f"- {label}: {', '.join(checkpoints)}" for label, checkpoints in paths.items()]
     for text in sweeps:
         factor, _, values = text.partition("=")
         values = robustness.parse_values(values)
@@ -65,7 +67,7 @@ def main(groups, sweeps, episodes, env_options, out: Path) -> None:
                     results[key] = sorted(done.items())
                     write_text_atomic(store, json.dumps(results, indent=1))
                 runs[label].append([(v, Episodes(**done[v])) for v in values])
-        lines += _table(runs, factor, values)
+        lines += _table(runs, factor, values) + _per_checkpoint(runs, paths, factor, values)
         robustness.plot(runs, factor, out / f"{factor}.png")
     report = "\n".join(lines) + "\n"
     write_text_atomic(out / "README.md", report)
@@ -87,6 +89,16 @@ def _table(runs, factor: str, values) -> list[str]:
                 f"{np.mean(speed):.3f} [{min(speed):.2f}, {max(speed):.2f}] / "
                 f"{sum(falls)} of {sum(len(p.ended) for p in points)} / {np.mean(ret):,.0f}"
             )
+        lines.append(f"| {value:g} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _per_checkpoint(runs, paths, factor: str, values) -> list[str]:
+    names = [f"{label} {Path(path).parent.name}" for label in runs for path in paths[label]]
+    lines = ["", f"| {factor} | " + " | ".join(names) + " |", "|---" * (1 + len(names)) + "|"]
+    for k, value in enumerate(values):
+        points = [seed[k][1] for label in runs for seed in runs[label]]
+        cells = [f"{np.nanmean(p.speeds):.2f} / {sum(p.ended)}" for p in points]
         lines.append(f"| {value:g} | " + " | ".join(cells) + " |")
     return lines
 
