@@ -89,6 +89,15 @@ def test_model_factors_scale_the_models_own_values_within_their_ranges():
     assert all(np.array_equal(v, nominal[k]) for k, v in _model_values(off).items())
 
 
+def test_per_geom_friction_draws_one_scale_per_geom_within_the_range():
+    nominal = _model_values(envs.make_team(GO2, seed=0))["geom_friction"][:, 0]
+    team = envs.make_team(GO2, seed=0, randomize=_only(friction=[0.5, 1.5], per_geom_friction=True))
+    team.reset(seed=3)
+    scale = team.physics.model.ptr.geom_friction[:, 0] / nominal
+    assert ((scale >= 0.5) & (scale <= 1.5)).all()
+    assert np.ptp(scale) > 0.2  # the geoms differ, where the global scale gives them one
+
+
 def test_latency_delays_the_action_the_motors_get_by_k_steps():
     team = envs.make_team(GO2, seed=0, randomize=_only(latency=[2, 2]))
     plain = envs.make_team(GO2, seed=0)
