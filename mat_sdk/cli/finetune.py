@@ -79,8 +79,10 @@ def finetune(
     Examples:
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat finetune runs/swimmer6/checkpoint.pt swimmer-9 --steps 50000 --out runs/sw9
-      mat finetune runs/go2/checkpoint.pt --fault FR_calf_joint=zero --steps 99200 \\
-          --lr 1e-3 --action-std 0.3 --trust-env-code   # a new gait: explore again
+      mat finetune runs/go2/checkpoint.pt --fault FR_calf_joint=weak:0.5 --steps 99200 \\
+          --action-std 0.3 --trust-env-code   # a weak knee, a new gait: explore again
+      mat finetune runs/go2/checkpoint.pt --steps 99200 --lr 1e-3 --trust-env-code \\
+          --set 'env_options={"randomize": {"payload": [6.0, 6.0]}}'   # 6 kg on the trunk
     """
     import numpy as np
 
