@@ -43,7 +43,9 @@ def _measure(bundle: Path, env_id: str, rate: float, seconds: float, spin: bool)
     # one episode for the whole run: a simulator's reset (1.3-1.5 ms for a cheetah) is not a
     # controller's tick, and at 1 kHz each one would count as a late tick
     episode = int(rate * (seconds + 2 * loop.WARMUP)) + 1
-    policy, team = Policy.load(bundle, threads=1), make_team(env_id, episode_limit=episode)
+    policy = Policy.load(bundle, threads=1)
+    options = {**policy.env_options, "episode_limit": episode}  # the robot as trained
+    team = make_team(env_id, policy.env_faults, **options)
     obs = np.zeros((team.n_agents, policy.obs_dim), np.float32)
     obs[:] = team.reset(seed=0)
     actions = np.zeros((team.n_agents, policy.action_size), np.float32)
