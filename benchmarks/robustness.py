@@ -27,7 +27,14 @@ from mat_sdk.files import write_text_atomic
 
 
 @click.command()
-@click.option("--group", "groups", multiple=True, required=True, metavar="LABEL=GLOB")
+@click.option(
+    "--group",
+    "groups",
+    multiple=True,
+    required=True,
+    metavar="LABEL=GLOB",
+    help="Checkpoints of one group (its seeds); repeat a LABEL to add more.",
+)
 @click.option("--sweep", "sweeps", multiple=True, required=True, metavar="FACTOR=VALUES")
 @click.option("--episodes", default=10, show_default=True)
 @click.option("--env-option", "env_options", multiple=True, metavar="KEY=VALUE")
@@ -40,9 +47,10 @@ def main(groups, sweeps, episodes, env_options, out: Path) -> None:
     paths = {}
     for group in groups:
         label, _, pattern = group.partition("=")
-        paths[label] = sorted(glob.glob(pattern))
-        if not paths[label]:
+        matched = sorted(glob.glob(pattern))
+        if not matched:
             raise click.BadParameter(f"{pattern!r} matches no checkpoint", param_hint="--group")
+        paths.setdefault(label, []).extend(matched)  # a label given twice gathers both
     lines = [f"{episodes} episodes per point, env options {options or 'none'}; per group the "
              "mean over its seeds, the seeds' range in brackets, then each checkpoint's own "
              "speed / falls.", ""]  # fmt: skip
