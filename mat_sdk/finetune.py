@@ -126,8 +126,8 @@ def _resumed(out, env, trust_env_code, options) -> tuple[Trainer, list[float]]:
                 f"{resumed} fine-tunes on {recorded!r}, not {env!r}; resume it without "
                 "another env, or start a new run with another out_dir"
             )
-    trust = trust_env_code or env is not None  # the user named this env
-    trainer = Trainer.load(resumed, out_dir=out, trust_env_code=trust, **options)
+        options = {**options, "env": recorded}  # typed by the user: trusted as named
+    trainer = Trainer.load(resumed, out_dir=out, trust_env_code=trust_env_code, **options)
     zero_shot = json.loads((out / SUMMARY_NAME).read_text())["zero_shot"]["returns"]
     return trainer, zero_shot
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mat_sdk import envs
 from mat_sdk.evaluation import CheckpointPolicy, evaluate
 from mat_sdk.files import write_text_atomic
 
@@ -87,9 +88,12 @@ class EvaluationLog:
             return run["absolute_metrics"]["return"]
         if not (self.out_dir / BEST_NAME).exists():
             return None
-        best = CheckpointPolicy.from_checkpoint(self.out_dir / BEST_NAME)
-        # this run's own best policy, on the env the run was given
-        returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, trust_env_code=True)
+        path = self.out_dir / BEST_NAME
+        best = CheckpointPolicy.from_checkpoint(path)
+        # this run's own best policy: a file that records another env is refused
+        named = [trainer.config.env, *trainer.config.more_envs]
+        envs.check_trusted([best.config["train"]["env"]], False, str(path), named=named)
+        returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, env_id=trainer.config.env)
         run["absolute_metrics"] = {"return": returns}
         self._write()
         return returns

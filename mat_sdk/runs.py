@@ -112,11 +112,8 @@ def start(request: RunRequest, say: Say = print) -> Trainer:
     if request.resume:
         if not request.checkpoint.exists():
             raise FileNotFoundError(f"nothing to resume: {request.checkpoint} does not exist")
-        # the ids given here are the checkpoint's (`training_options` refuses others)
-        trainer = Trainer.load(
-            request.checkpoint, out_dir=request.out, trust_env_code=True,
-            **request.given_options(),
-        )  # fmt: skip
+        # the ids given here are the user's, and must be the checkpoint's
+        trainer = Trainer.load(request.checkpoint, out_dir=request.out, **request.given_options())
         changed = ", ".join(f"{k}={v}" for k, v in trainer.resumed_with.items())
         say(
             f"resuming {request.checkpoint} at {trainer.progress['steps']:,} steps"

@@ -291,12 +291,16 @@ class Trainer:
         Overrides may change how to run (device, workers, update_workers,
         checkpoint_every); any other TrainConfig field given must be the checkpoint's own
         (`checkpoint.training_options`). `resumed_with` holds what changed.
-        A `module:function` env id the checkpoint records is imported only with
+        A `module:function` env id the checkpoint records is imported only when the caller
+        names that same id (`env=`, `more_envs=`: typed by the user in this process) or with
         `trust_env_code=True` (`envs.check_trusted`): a checkpoint from elsewhere runs no code.
         """
         payload = checkpoint.load(path)
         train, changed = checkpoint.training_options(payload, path, overrides)
-        envs.check_trusted([train["env"], *train.get("more_envs", [])], trust_env_code, str(path))
+        named = [overrides["env"]] if "env" in overrides else []  # equal to the recorded ones
+        named += list(overrides.get("more_envs", []))
+        recorded = [train["env"], *train.get("more_envs", [])]
+        envs.check_trusted(recorded, trust_env_code, str(path), named=named)
         if envs.is_family(train["env"]):  # trained without an identity: keep it so
             train["env_options"] = {"position": None, **train["env_options"]}
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
@@ -375,9 +379,9 @@ class Trainer:
         """Returns of full episodes of the current policy on this trainer's (changed) robot."""
         from mat_sdk.evaluation import evaluate
 
-        # this run's own env: built already, nothing new to trust
+        # this run's own env, named to it: nothing read from a file
         loaded = self._as_loaded()
-        return evaluate(loaded, episodes, deterministic=deterministic, trust_env_code=True)
+        return evaluate(loaded, episodes, env_id=self.config.env, deterministic=deterministic)
 
     def _as_loaded(self):
         """This trainer's policy as `mat eval` sees a checkpoint: weights + obs normaliser."""

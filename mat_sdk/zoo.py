@@ -87,9 +87,11 @@ def add(
     try:
         with files.writing(target):
             shutil.copyfile(source, staging / "checkpoint.pt")
-        export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=True)
+        export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=trust_env_code)
         loaded = CheckpointPolicy.from_checkpoint(staging / "checkpoint.pt")
-        returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=True)
+        returns = evaluate(
+            loaded, episodes, seed=EVALUATION_SEED, trust_env_code=trust_env_code
+        )
         options = train.get("env_options") or {}
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
         card = {

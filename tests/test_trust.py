@@ -40,11 +40,11 @@ HOSTILE = "planted:make"
 REFUSED = "runs no code unless you opt in: pass --trust-env-code"
 
 
-def _run(args, cwd):
+def _run(args, cwd, env=None):
     """`mat ARGS`, or `python SCRIPT.py ARGS`, in `cwd`, as a user runs it."""
     mat = str(Path(sys.executable).with_name("mat"))
     command = [sys.executable, *args] if args[0].endswith(".py") else [mat, *args]
-    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300)
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
 
 
 @pytest.fixture(scope="module")
@@ -163,6 +163,10 @@ def test_the_opt_in_imports_the_recorded_id(planted):
         ("tempfile:mkdtemp", "standard library module 'tempfile'"),
         ("json.decoder:JSONDecoder", "standard library module 'json.decoder'"),
         ("torch:zeros", "not a Python function"),
+        ("mat_sdk.zoo:tempfile.mkdtemp", "no dots"),
+        ("click.testing:pdb.set_trace", "no dots"),
+        ("mat_sdk.zoo:evaluate", "not defined in module 'mat_sdk.zoo'"),
+        ("mat_sdk.zoo:shutil", "not defined in module 'mat_sdk.zoo'"),
         ("pathlib_not_there:x", "no module 'pathlib_not_there'"),
     ],
 )
@@ -195,3 +199,73 @@ def test_seed_children_do_not_import_modules_from_the_working_directory(tmp_path
     assert run.returncode == 0, run.stdout + run.stderr
     assert not (tmp_path / "ran").exists()
     assert os.path.exists(tmp_path / "set" / "seed_0" / "checkpoint.pt")
+
+
+def test_a_trusted_id_never_walks_attributes_into_other_modules(planted, tmp_path):
+    """With the opt-in, the part after the colon is one function defined in that module: a
+    recorded `module:other_module.function` is refused before anything is called."""
+    payload = torch.load(planted / "honest.pt", weights_only=True)
+    payload["config"]["train"]["env"] = "mat_sdk.zoo:tempfile.mkdtemp"
+    checkpoint.save_atomic(payload, tmp_path / "walk.pt")
+    (tmp_path / "tmp").mkdir()
+    run = _run(["eval", str(tmp_path / "walk.pt"), "--trust-env-code"], tmp_path,
+               env={**os.environ, "TMPDIR": str(tmp_path / "tmp")})  # fmt: skip
+    assert run.returncode == 1 and "no dots" in run.stderr and "Traceback" not in run.stderr
+    assert not any((tmp_path / "tmp").iterdir()), "mkdtemp was called"
+
+
+def test_a_tampered_best_checkpoint_is_not_evaluated_as_its_own_env(planted, monkeypatch):
+    """The end-of-run absolute metric evaluates `best.pt` on the run's own env: a `best.pt`
+    that records another module's id (with an evaluation log claiming a huge return) is
+    refused, and the module is never imported."""
+    from mat_sdk.protocol import BEST_NAME, EvaluationLog
+
+    monkeypatch.chdir(planted)
+    monkeypatch.syspath_prepend(str(planted))
+    run = planted / "tampered-run"
+    run.mkdir(exist_ok=True)
+    with Trainer("hopper-2x2", out_dir=run, num_envs=2, rollout_length=10, ppo_epochs=1,
+                 num_minibatches=1) as trainer:  # fmt: skip
+        log = EvaluationLog(run, every=10, episodes=1)
+        trainer.learn(20, callback=log, progress_bar=False)
+        (run / BEST_NAME).write_bytes((planted / "hostile.pt").read_bytes())
+        with pytest.raises(UntrustedEnvError, match="best.pt records the env id 'planted:make'"):
+            log.finish(trainer)
+    assert not (planted / "ran").exists(), "the planted module was imported"
+
+
+def test_a_resumed_finetune_does_not_trust_the_envs_its_checkpoint_adds(planted, monkeypatch):
+    """`finetune(..., env=E, resume=True)` names E, and only E: a `more_envs` entry planted in
+    the run's checkpoint is still refused."""
+    from mat_sdk.finetune import finetune
+
+    monkeypatch.chdir(planted)
+    monkeypatch.syspath_prepend(str(planted))
+    out = planted / "ft-resume"
+    finetune(planted / "honest.pt", "hopper-2x2", steps=20, out_dir=out, eval_episodes=1,
+             num_envs=2, rollout_length=10, ppo_epochs=1, num_minibatches=1,
+             progress_bar=False)  # fmt: skip
+    payload = torch.load(out / "checkpoint.pt", weights_only=True)
+    payload["config"]["train"]["more_envs"] = [HOSTILE]
+    checkpoint.save_atomic(payload, out / "checkpoint.pt")
+    with pytest.raises(UntrustedEnvError, match="records the env id 'planted:make'"):
+        finetune(planted / "honest.pt", "hopper-2x2", steps=40, out_dir=out, resume=True,
+                 progress_bar=False)  # fmt: skip
+    run = _run(["finetune", "honest.pt", "hopper-2x2", "--resume", "--out", "ft-resume",
+                "--steps", "40"], planted)  # fmt: skip
+    _refused(run, planted)
+
+
+def test_every_library_path_leaves_the_trust_decision_to_check_trusted():
+    """The paths that load an env id from a file (eval, export, finetune, zoo, resume, the
+    absolute metric) pass the user's flag or the ids the user named; none passes a literal
+    `trust_env_code=True`, which is how the two holes above came about."""
+    import ast
+
+    offenders = []
+    for path in [*(REPO / "mat_sdk").rglob("*.py"), *(REPO / "export").rglob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            literal = isinstance(node, ast.keyword) and isinstance(node.value, ast.Constant)
+            if literal and node.arg == "trust_env_code" and node.value.value is True:
+                offenders.append(f"{path.relative_to(REPO)}:{node.value.lineno}")
+    assert offenders == []

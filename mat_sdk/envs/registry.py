@@ -95,14 +95,18 @@ def imports_code(env_id: str) -> bool:
     )
 
 
-def check_trusted(env_ids: Iterable[str], trusted: bool, source: str) -> None:
-    """Refuse the `module:function` ids that were read from `source` (a file), unless the
-    user opted in (`trusted`): loading a downloaded file must never run its code."""
+def check_trusted(
+    env_ids: Iterable[str], trusted: bool, source: str, named: Iterable[str] = ()
+) -> None:
+    """The one trust decision: refuse the `module:function` ids read from `source` (a file)
+    unless the user typed that same id in this process (`named`) or opted in (`trusted`).
+    Loading a downloaded file or a tampered run directory must never run its code."""
     if trusted:
         return
+    typed = {id_of(env) for env in named}
     for env_id in env_ids:
-        if imports_code(env_id):
-            module = env_id.partition(":")[0]
+        if imports_code(env_id) and env_id not in typed:
+            module = str(env_id).partition(":")[0]
             raise UntrustedEnvError(
                 f"{source} records the env id {env_id!r}, which would import and run code from "
                 f"module {module!r}; an id read from a file runs no code unless you opt in: "
@@ -186,12 +190,19 @@ def _entry_points() -> dict[str, metadata.EntryPoint]:
 
 
 def _imported(env_id: str):
+    """The function `module:function` names: a module outside the standard library, and a
+    function defined in that module (no attribute walk into what it imports)."""
     module_name, _, attribute = env_id.partition(":")
     if module_name.partition(".")[0] in sys.stdlib_module_names:
         raise ValueError(
             f"env id {env_id!r} names the standard library module {module_name!r}; an env id "
             "names a function of yours that returns from_mjcf / from_dm_control / "
             "from_pettingzoo"
+        )
+    if not attribute.isidentifier():
+        raise ValueError(
+            f"env id {env_id!r}: after the colon comes the name of one function defined in "
+            f"module {module_name!r} (no dots), got {attribute[:80]!r}"
         )
     try:
         module = importlib.import_module(module_name)
@@ -203,11 +214,15 @@ def _imported(env_id: str):
                 "only in that process: give tools a module:function id)"
             ) from None
         raise
-    target: Any = module
-    for part in attribute.split("."):
-        if not hasattr(target, part):
-            raise ValueError(f"env id {env_id!r}: module {module_name!r} has no {attribute!r}")
-        target = getattr(target, part)
+    if not hasattr(module, attribute):
+        raise ValueError(f"env id {env_id!r}: module {module_name!r} has no {attribute!r}")
+    target = getattr(module, attribute)
+    if not isinstance(target, EnvSpec) and getattr(target, "__module__", None) != module_name:
+        raise ValueError(
+            f"env id {env_id!r}: {attribute!r} is not defined in module {module_name!r} (it "
+            f"comes from {getattr(target, '__module__', None)!r}); name the function where it "
+            "is defined"
+        )
     return target
 
 
