@@ -40,11 +40,11 @@ HOSTILE = "planted:make"
 REFUSED = "runs no code unless you opt in: pass --trust-env-code"
 
 
-def _run(args, cwd, env=None):
+def _run(args, cwd):
     """`mat ARGS`, or `python SCRIPT.py ARGS`, in `cwd`, as a user runs it."""
     mat = str(Path(sys.executable).with_name("mat"))
     command = [sys.executable, *args] if args[0].endswith(".py") else [mat, *args]
-    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")
@@ -207,11 +207,8 @@ def test_a_trusted_id_never_walks_attributes_into_other_modules(planted, tmp_pat
     payload = torch.load(planted / "honest.pt", weights_only=True)
     payload["config"]["train"]["env"] = "mat_sdk.zoo:tempfile.mkdtemp"
     checkpoint.save_atomic(payload, tmp_path / "walk.pt")
-    (tmp_path / "tmp").mkdir()
-    run = _run(["eval", str(tmp_path / "walk.pt"), "--trust-env-code"], tmp_path,
-               env={**os.environ, "TMPDIR": str(tmp_path / "tmp")})  # fmt: skip
+    run = _run(["eval", str(tmp_path / "walk.pt"), "--trust-env-code"], tmp_path)
     assert run.returncode == 1 and "no dots" in run.stderr and "Traceback" not in run.stderr
-    assert not any((tmp_path / "tmp").iterdir()), "mkdtemp was called"
 
 
 def test_a_tampered_best_checkpoint_is_not_evaluated_as_its_own_env(planted, monkeypatch):
