@@ -97,8 +97,9 @@ def train_seeds(
 ) -> list[int]:
     """Run `request` once per seed into OUT/seed_K (see the module docstring); the update
     settings tuned once here. -> the seeds that failed (the others finished)."""
-    from mat_sdk.runs import tuned
+    from mat_sdk.runs import tuned, with_task_recipe
 
+    request = with_task_recipe(request)
     out = Path(request.out)
     cores = usable_cores()
     workers = request.options.get("workers", 0)

@@ -58,6 +58,9 @@ class Trajectory:
     raw_obs: np.ndarray | None = None
     advantages: Tensor | None = None
     returns: Tensor | None = None
+    # the reward of each step by named term, weighted [T, E, terms] (tasks built from terms)
+    reward_terms: Tensor | None = None
+    term_names: tuple[str, ...] = ()
 
     def rows(self, std_floor: float = 0.0) -> dict[str, Tensor]:
         """The update's rows [T * E, ...] of every per-step tensor the update reads, with the
@@ -85,12 +88,19 @@ class Trajectory:
             counted = self.active.expand_as(advantages) > 0
             advantages, returns = advantages[counted], returns[counted]
         returns_var = float(returns.var())
+        terms = {}
+        if self.reward_terms is not None:  # each term's mean per env step: which term rules
+            means = self.reward_terms.mean(dim=(0, 1)).tolist()
+            terms = {
+                f"reward/{name}": mean for name, mean in zip(self.term_names, means, strict=True)
+            }
         return {
             "advantage_std": float(advantages.std()),
             # returns - values are the advantages
             "explained_variance": 1.0 - float(advantages.var()) / returns_var
             if returns_var > 0
             else math.nan,
+            **terms,
         }
 
     @classmethod
@@ -105,6 +115,8 @@ class Trajectory:
                 joined[item.name] = [r for value in values for r in value]
             elif item.name == "raw_obs":
                 joined[item.name] = np.concatenate(values)
+            elif item.name == "term_names":
+                joined[item.name] = values[0]
             elif item.name == "last_values":
                 joined[item.name] = torch.cat(values, dim=0).to(device)
             else:  # [T, E, ...]
@@ -205,6 +217,7 @@ class RolloutCollector:
         cfg, env, device = self.config, self.env, self.device
         T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
         buffers: dict[str, list] = {name: [] for name in (*STEP_FIELDS, *MASK_FIELDS[:3])}
+        terms: list[np.ndarray] = []
         raw = [self.next_obs]
         bootstrap = torch.zeros(T, E, n, 1, device=device)
         finished: list[float] = []
@@ -227,6 +240,8 @@ class RolloutCollector:
             ):
                 buffers[name].append(value)
             buffers["rewards"].append(self._flags(reward).view(E, 1, 1))
+            if env.reward_terms:
+                terms.append(info["reward_terms"])
             # an agent that left the episode ends its own trace there (the team's goes on)
             for name, flags in (("terminated", terminated), ("done", terminated | truncated)):
                 flags = self._flags(flags).view(E, 1, 1)
@@ -253,6 +268,8 @@ class RolloutCollector:
             finished=finished,
             action_dims=None if dims is None else dims.expand(T, E, n, -1),
             raw_obs=np.concatenate(raw) if keep_raw else None,
+            reward_terms=torch.as_tensor(np.stack(terms), dtype=torch.float32) if terms else None,
+            term_names=tuple(env.reward_terms),
         )
 
     def _flags(self, flags: np.ndarray) -> Tensor:

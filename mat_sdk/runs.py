@@ -106,6 +106,19 @@ def train(request: RunRequest, say: Say = print, progress_bar: bool = True) -> R
     return RunResult(trainer, request.checkpoint, absolute)
 
 
+def with_task_recipe(request: RunRequest) -> RunRequest:
+    """The request with its task's training recipe (`envs.TrainingRecipe`) under the
+    options the user chose: `--set` and the flags override it, the CLI's defaults do not."""
+    from mat_sdk import envs
+
+    recipe = envs.recipe_of(request.env_ids[0])
+    if recipe is None:
+        return request
+    settings = {k: v for k, v in recipe.settings().items() if k not in request.given}
+    tune = request.tune if request.tune is not None else recipe.tune
+    return dataclasses.replace(request, options={**request.options, **settings}, tune=tune)
+
+
 def start(request: RunRequest, say: Say = print) -> Trainer:
     """The run's trainer: resumed from its checkpoint (refusing a changed task), or new (with
     the family identity and the tuned update settings), each decision said."""
@@ -125,6 +138,7 @@ def start(request: RunRequest, say: Say = print) -> Trainer:
             f"{request.checkpoint} exists; pass --resume to continue that run or choose another "
             "--out"
         )
+    request = with_task_recipe(request)
     options = {**request.options, **tuned(request, say)}
     if len(request.env_ids) > 1:
         options["more_envs"] = list(request.env_ids[1:])

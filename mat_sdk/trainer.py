@@ -51,10 +51,16 @@ class Trainer:
         """`env`: an env id (`mat envs`, or `module:function`), or a spec from
         `envs.from_dm_control` / `from_mjcf` / `from_pettingzoo` (or a function returning
         one). The checkpoint records the id; a spec's id is known only in this process, a
-        module-level function's `module:function` id everywhere."""
-        self.config = TrainConfig.for_algo(algo, env=envs.id_of(env), **options)
+        module-level function's `module:function` id everywhere. A task that declares a
+        training recipe (`envs.TrainingRecipe`) trains with it; `options` override it."""
+        recipe = envs.recipe_of(env)
+        task = {k: v for k, v in recipe.settings().items() if k not in options} if recipe else {}
+        self.config = TrainConfig.for_algo(algo, env=envs.id_of(env), **task, **options)
         cfg = self.config
         self.notes: list[str] = []  # decisions taken for the user, in words
+        if task:
+            settings = ", ".join(f"{k}={v}" for k, v in task.items())
+            self.notes.append(f"{cfg.env} trains with its task's recipe: {settings}")
         self.resumed_with: dict[str, Any] = {}  # how-to-run changes of a resume (`load`)
         identity = envs.family_identity(cfg.env, cfg.env_options)
         if identity != cfg.env_options:

@@ -89,9 +89,7 @@ def add(
             shutil.copyfile(source, staging / "checkpoint.pt")
         export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=trust_env_code)
         loaded = CheckpointPolicy.from_checkpoint(staging / "checkpoint.pt")
-        returns = evaluate(
-            loaded, episodes, seed=EVALUATION_SEED, trust_env_code=trust_env_code
-        )
+        returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=trust_env_code)
         options = train.get("env_options") or {}
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
         card = {

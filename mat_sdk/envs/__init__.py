@@ -58,6 +58,7 @@ from mat_sdk.envs.features import Observation
 from mat_sdk.envs.parallel import TeamParallelEnv
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
 from mat_sdk.envs.randomization import Randomization
+from mat_sdk.envs.recipe import TrainingRecipe
 from mat_sdk.envs.registry import (
     ENTRY_POINT_GROUP,
     FAMILY_IDENTITY,
@@ -69,6 +70,7 @@ from mat_sdk.envs.registry import (
     id_of,
     installed_ids,
     is_family,
+    recipe_of,
     register,
     resolve,
 )
@@ -90,6 +92,7 @@ __all__ = [
     "RobotSpec",
     "RobotTeam",
     "TeamParallelEnv",
+    "TrainingRecipe",
     "UntrustedEnvError",
     "VecTeam",
     "check_trusted",
@@ -104,6 +107,7 @@ __all__ = [
     "make_team",
     "make_vec",
     "random_rollout",
+    "recipe_of",
     "register",
     "resolve",
     "terms",

@@ -11,17 +11,28 @@ from typing import Any
 
 import numpy as np
 
-from mat_sdk.envs.checks import is_real
+from mat_sdk.envs.checks import is_real, short
+
+# Steps an episode may last at most: over half an hour of control at 50 Hz. A recorded
+# limit beyond it would make an evaluation run for days.
+MAX_EPISODE_LIMIT = 100_000
 
 
 def checked_episode_limit(given: int | None, default: int) -> int:
-    """The episode length to truncate at: `given` (>= 1), or the env's own `default`."""
+    """The episode length to truncate at: `given` (1..MAX_EPISODE_LIMIT), or the env's own
+    `default`."""
     if given is None:
         if not math.isfinite(default):
             raise ValueError("the environment has no time limit; set episode_limit")
         return int(default)
-    if isinstance(given, bool) or not isinstance(given, int | np.integer) or given < 1:
-        raise ValueError(f"episode_limit must be an integer >= 1, got {given!r}")
+    if (
+        isinstance(given, bool)
+        or not isinstance(given, int | np.integer)
+        or not 1 <= given <= MAX_EPISODE_LIMIT
+    ):
+        raise ValueError(
+            f"episode_limit must be an integer in 1..{MAX_EPISODE_LIMIT:,}, got {short(given)}"
+        )
     return int(given)
 
 
@@ -223,6 +234,11 @@ class ArrayTeam:
     # keep `active [n]` and `available [n, action_size]` up to date (PettingZoo envs).
     masks: bool = False
     variable_count: bool = False  # a family: one observation size for any agent count
+    reward_terms: tuple[str, ...] = ()  # a reward built from named terms: their names
+
+    def term_values(self) -> np.ndarray:
+        """The last step's reward by term, weighted, in `reward_terms`' order (sums to it)."""
+        return np.zeros(0)
 
     @property
     def choices(self) -> np.ndarray:

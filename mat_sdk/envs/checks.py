@@ -16,6 +16,12 @@ def is_real(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
 
 
+def short(value: Any, limit: int = 60) -> str:
+    """`repr(value)`, cut to `limit` characters: an error names a value, never echoes a huge one."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 def finite_range(value: Any, name: str) -> tuple[float, float]:
     """`value` as a (low, high) range: two finite real numbers with low <= high."""
     if (
@@ -26,6 +32,6 @@ def finite_range(value: Any, name: str) -> tuple[float, float]:
         or value[0] > value[1]
     ):
         raise ValueError(
-            f"{name} must be [low, high], two finite numbers with low <= high, got {value!r}"
+            f"{name} must be [low, high], two finite numbers with low <= high, got {short(value)}"
         )
     return float(value[0]), float(value[1])

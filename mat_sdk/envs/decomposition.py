@@ -68,6 +68,10 @@ def _body_path_to_root(model: mujoco.MjModel, body: int) -> list[int]:
     return path
 
 
+# A neighbourhood wider than any robot's body tree is deep; a larger recorded value is an error.
+MAX_HOPS = 64
+
+
 def _bodies_within(model: mujoco.MjModel, start: set[int], hops: int) -> dict[int, int]:
     """Breadth-first search over the body tree (parent and child edges): body -> hop count."""
     children: dict[int, list[int]] = {}
@@ -83,6 +87,8 @@ def _bodies_within(model: mujoco.MjModel, start: set[int], hops: int) -> dict[in
                     distance[other] = hop
                     nxt.append(other)
         frontier = nxt
+        if not frontier:  # the whole tree is within reach: more hops change nothing
+            break
     return distance
 
 
@@ -95,6 +101,8 @@ def decompose(
     (hop 0: other joints on the agent's own bodies). They are split into the joints toward
     the root and the rest, so that a slot keeps its meaning across robots of a family.
     """
+    if isinstance(hops, bool) or not isinstance(hops, int) or not 0 <= hops <= MAX_HOPS:
+        raise ValueError(f"hops must be an integer in 0..{MAX_HOPS}, got {str(hops)[:40]}")
     roots = set(root_joints(model))
     agents = []
     for group in groups:

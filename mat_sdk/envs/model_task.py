@@ -1,12 +1,18 @@
 """A bare MJCF model as a dm_control environment (`from_mjcf`): a start pose, a reward, an end.
 
-Episodes start from the model's keyframe (`home` when it has one, else `qpos0`) with noise
-that respects each joint: a hinge or slide moves by up to `reset_noise` in its own units,
+Episodes start from the model's keyframe (`home` when it has one), or from a pose given by
+joint angles (`start`, legged_gym's default_joint_angles) with the base lowered until the
+robot touches the floor; a floating base with neither is refused, since qpos0 is rarely a
+pose a robot can stand in. A model without a floating base may start from `qpos0`.
+Noise respects each joint: a hinge or slide moves by up to `reset_noise` in its own units,
 never more than `reset_noise` times half its range, and stays inside the range; a free
 joint (a floating base) moves horizontally and turns only when asked (`root_noise`), its
 quaternion staying a unit rotation; velocities of hinges and slides get normal noise of the
 same scale. The reward is the user's function of the physics, or a list of `terms`; so is
 the termination. A `VelocityCommand` is sampled per episode.
+
+Physics copies are compiled without visual assets (`compiler.discardvisual`): textures and
+visual meshes cost hundreds of MB per copy on a Menagerie model and no physics reads them.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from mat_sdk.envs.base import user_call
 from mat_sdk.envs.trunk import Trunk, geom_ids
 
 HOME = "home"  # the keyframe a start defaults to, by Menagerie's convention
+FLOOR = "floor"  # the reward's pseudo-term that lifts a negative step to 0 (logs)
 _FREE, _BALL = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
 
 
@@ -42,18 +49,16 @@ class ModelEnvironment:
     keyframe: str | None = None  # None: HOME when the model has it, else qpos0
     root_noise: tuple[float, float] = (0.0, 0.0)  # a free base's (position m, turn rad)
     commands: terms.VelocityCommand | None = None
+    start: tuple[tuple[str, float], ...] | None = None  # joint angles by name
+    only_positive_rewards: bool = False  # legged_gym's: a step's reward is at least 0
+    visual: bool = False  # keep visual geoms, meshes and textures (rendering)
 
     def physics(self) -> dm_mujoco.Physics:
-        """The compiled model; a path keeps its directory for included files and meshes."""
-        xml = self.model.lstrip().startswith("<")
-        try:
-            if xml:
-                return dm_mujoco.Physics.from_xml_string(self.model)
-            return dm_mujoco.Physics.from_xml_path(self.model)
-        except Exception as error:  # MuJoCo's parser and compiler: ValueError, Error, ...
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:300]
-            name = "the model XML" if xml else self.model
-            raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
+        """The compiled model, without visual assets unless `visual`; a path keeps its
+        directory for included files and meshes. A process compiles a model once and
+        gives each env copy its own copy of the compiled model."""
+        model = dm_mujoco.wrapper.MjModel(_copy(_compiled(self.model, self.visual)))
+        return dm_mujoco.Physics.from_model(model)
 
     def __call__(self, seed: int | None) -> control.Environment:
         physics = self.physics()
@@ -61,9 +66,45 @@ class ModelEnvironment:
         return control.Environment(physics, task, n_sub_steps=self.substeps)  # no time limit
 
 
-def start_pose(model: mujoco.MjModel, keyframe: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """(qpos, ctrl) an episode starts from: the keyframe's (by name; HOME by default when the
-    model has one), else qpos0 and zero controls. Refuses a pose outside a joint's range."""
+_COMPILED: dict[tuple[str, bool], mujoco.MjModel] = {}
+
+
+def _compiled(source: str, visual: bool) -> mujoco.MjModel:
+    """`source` (a path or XML) compiled once per process, without visual assets unless
+    `visual`; ValueError with MuJoCo's first line when it cannot be."""
+    key = (source, visual)
+    if key not in _COMPILED:
+        xml = source.lstrip().startswith("<")
+        try:
+            spec = mujoco.MjSpec.from_string(source) if xml else mujoco.MjSpec.from_file(source)
+            spec.compiler.discardvisual = not visual
+            _COMPILED[key] = spec.compile()
+        except Exception as error:  # MuJoCo's parser and compiler: ValueError, Error, ...
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0][:300]
+            name = "the model XML" if xml else source
+            raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
+    return _COMPILED[key]
+
+
+def _copy(model: mujoco.MjModel) -> mujoco.MjModel:
+    """A copy of its own: randomization changes a copy's masses, friction and gains."""
+    import copy
+
+    return copy.copy(model)
+
+
+def start_pose(
+    model: mujoco.MjModel, keyframe: str | None, start: Sequence[tuple[str, float]] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(qpos, ctrl) an episode starts from: the `start` joint angles, its base on the floor
+    (`settled_pose`); else the keyframe's (by name; HOME by default when the model has one);
+    else, for a model without a floating base, qpos0 and zero controls. Refuses a floating
+    base with no pose to start from and a pose outside a joint's range."""
+    if start is not None:
+        if keyframe is not None:
+            raise ValueError("give a start pose (start=) or a keyframe (keyframe=), not both")
+        qpos = settled_pose(model, start)
+        return qpos, _holding_controls(model, qpos)
     name = HOME if keyframe is None else keyframe
     key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, name)
     if key < 0 and keyframe is not None:
@@ -71,6 +112,13 @@ def start_pose(model: mujoco.MjModel, keyframe: str | None) -> tuple[np.ndarray,
         raise ValueError(
             f"the model has no keyframe named {keyframe!r}; its keyframes: "
             f"{', '.join(keys) or 'none'}"
+        )
+    if key < 0 and _FREE in model.jnt_type:
+        raise ValueError(
+            f"the model has a floating base but no {HOME!r} keyframe, so its episodes would "
+            "start from qpos0 (straight legs, often in the floor); give a standing pose as "
+            "joint angles, start={'FL_thigh_joint': 0.9, ...} (the base height is found by "
+            "lowering it onto the floor), or name a keyframe (keyframe=...)"
         )
     if key >= 0:
         qpos, ctrl = model.key_qpos[key].copy(), model.key_ctrl[key].copy()
@@ -89,6 +137,58 @@ def start_pose(model: mujoco.MjModel, keyframe: str | None) -> tuple[np.ndarray,
     return qpos, ctrl
 
 
+def settled_pose(model: mujoco.MjModel, start: Sequence[tuple[str, float]]) -> np.ndarray:
+    """qpos with the `start` joint angles (by joint name; the others at qpos0) and a level
+    floating base at the height where the robot's lowest geom just touches the floor (found
+    by bisection on MuJoCo's own collision detection, so meshes count exactly)."""
+    qpos = model.qpos0.copy()
+    for name, angle in start:
+        joint = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if joint < 0 or model.jnt_type[joint] in (_FREE, _BALL):
+            raise ValueError(
+                f"start names {name!r}, which is not a hinge or slide joint of the model"
+            )
+        if not (isinstance(angle, int | float) and math.isfinite(angle)):
+            raise ValueError(
+                f"start angle of joint {name!r} must be a finite number, got {angle!r}"
+            )
+        qpos[model.jnt_qposadr[joint]] = angle
+    free = [j for j in range(model.njnt) if model.jnt_type[j] == _FREE]
+    if not free:
+        return qpos
+    base = model.jnt_qposadr[free[0]]
+    qpos[base + 3 : base + 7] = (1.0, 0.0, 0.0, 0.0)
+    data = mujoco.MjData(model)
+
+    def touches(height: float) -> bool:
+        data.qpos[:] = qpos
+        data.qpos[base + 2] = height
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+        bodies = model.geom_bodyid[data.contact.geom[: data.ncon]]
+        return bool(((bodies == 0).any(axis=1) & (bodies != 0).any(axis=1)).any())
+
+    low, high = float(qpos[base + 2]) - 10.0, float(qpos[base + 2]) + 10.0
+    if not touches(low) or touches(high):
+        raise ValueError("start: cannot find the floor under the robot (does the model have one?)")
+    for _ in range(50):
+        middle = (low + high) / 2
+        low, high = (middle, high) if touches(middle) else (low, middle)
+    qpos[base + 2] = high
+    return qpos
+
+
+def _holding_controls(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """Controls that hold `qpos`: a position actuator's target is its joint's angle; others 0."""
+    ctrl = np.zeros(model.nu)
+    for actuator in range(model.nu):
+        joint = int(model.actuator_trnid[actuator, 0])
+        position = model.actuator_biastype[actuator] != int(mujoco.mjtBias.mjBIAS_NONE)
+        if model.actuator_trntype[actuator] == int(mujoco.mjtTrn.mjTRN_JOINT) and position:
+            ctrl[actuator] = qpos[model.jnt_qposadr[joint]]
+    return ctrl
+
+
 def _ranged_joints(model: mujoco.MjModel) -> list[int]:
     return [
         j
@@ -105,8 +205,8 @@ class ModelTask(base.Task):
         super().__init__(random=random)
         self.recipe = recipe
         model = physics.model.ptr
-        check_terms(recipe.reward, recipe.terminate, model)
-        self.start_qpos, self.start_ctrl = start_pose(model, recipe.keyframe)
+        check_terms(recipe.reward, recipe.terminate, model, recipe.commands)
+        self.start_qpos, self.start_ctrl = start_pose(model, recipe.keyframe, recipe.start)
         self._noise_scale = _noise_scales(model, recipe.reset_noise)
         self.command = np.zeros(3 if recipe.commands else 0)
         self.fixed_command: np.ndarray | None = None
@@ -116,11 +216,14 @@ class ModelTask(base.Task):
             recipe.terminate is not None and not callable(recipe.terminate)
         )
         self._step = None
+        # this step's reward by term, weighted (and what the floor added: `reward_terms`)
+        self.term_values = np.zeros(len(self.reward_terms))
         if uses_terms:
             trunk = Trunk(model)
+            scale = terms.RobotScale.of(model, self.start_qpos[trunk.qpos + 2])
             self._step = terms.Step(
                 physics.data.ptr, model, trunk, self.command, self.action,
-                self.previous_action, physics.model.opt.timestep * recipe.substeps,
+                self.previous_action, physics.model.opt.timestep * recipe.substeps, scale,
             )  # fmt: skip
 
     # ---------------------------------------------------------------- episodes
@@ -198,11 +301,28 @@ class ModelTask(base.Task):
     def get_observation(self, physics) -> dict:
         return {"qpos": physics.data.qpos.copy(), "qvel": physics.data.qvel.copy()}
 
+    @property
+    def reward_terms(self) -> tuple[str, ...]:
+        """The names of the reward's terms, as logged (empty for a reward function); with
+        `only_positive_rewards`, last comes `floor`: what lifting a negative step to 0 added."""
+        reward = self.recipe.reward
+        if callable(reward):
+            return ()
+        names = tuple(term.name for term in reward)
+        return (*names, FLOOR) if self.recipe.only_positive_rewards else names
+
     def get_reward(self, physics) -> float:
         reward = self.recipe.reward
         if callable(reward):
             return float(user_call(reward, "reward function", physics))
-        return float(sum(term.weight * term.value(self._step) for term in reward))
+        values = self.term_values
+        for k, term in enumerate(reward):
+            values[k] = term.weight * term.value(self._step)
+        total = float(values[: len(reward)].sum())
+        if self.recipe.only_positive_rewards:
+            values[-1] = max(0.0, -total)
+            total = max(total, 0.0)
+        return total
 
     def get_termination(self, physics) -> float | None:
         terminate = self.recipe.terminate
@@ -232,9 +352,10 @@ def _noise_scales(model: mujoco.MjModel, noise: float) -> tuple[np.ndarray, np.n
     return scale_q, scale_v
 
 
-def check_terms(reward: Any, terminate: Any, model: mujoco.MjModel) -> None:
-    """Refuse rewards and terminations that are neither functions nor lists of terms, and
-    terms that name what the model does not have, before any episode runs."""
+def check_terms(reward: Any, terminate: Any, model: mujoco.MjModel, commands: Any = None) -> None:
+    """Refuse rewards and terminations that are neither functions nor lists of terms, terms
+    that name what the model does not have, and terms that follow a command the task does
+    not give, before any episode runs."""
     if not callable(reward):
         if not _terms_of(reward, terms.Term):
             raise ValueError(
@@ -256,6 +377,12 @@ def check_terms(reward: Any, terminate: Any, model: mujoco.MjModel) -> None:
     uses_terms = not callable(reward) or (terminate is not None and not callable(terminate))
     if uses_terms:
         Trunk(model)  # terms read the floating base: it must exist
+    for term in () if callable(reward) else reward:
+        if getattr(term, "needs_commands", False) and commands is None:
+            raise ValueError(
+                f"reward term {type(term).__name__} follows a velocity command, and the task "
+                "gives none: pass commands=envs.terms.VelocityCommand(vx=(low, high), ...)"
+            )
     for term in () if terminate is None or callable(terminate) else terminate:
         if isinstance(term, terms.IllegalContact):
             geom_ids(model, term.names, "illegal contact")

@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.checks import finite_range, is_real
+from mat_sdk.envs.checks import finite_range, is_real, short
 from mat_sdk.envs.trunk import Trunk
 
 Range = tuple[float, float]
@@ -43,6 +43,35 @@ DEFAULT_NOISE = {
 }
 
 
+# Bounds on every factor: past them a draw no longer models a real robot, and some (a
+# latency of 1e9 steps, a mass of 1e-300) exhaust memory or break the simulation. The table
+# with the reasons is in docs/REAL_ROBOTS.md.
+SCALE_BOUNDS = {  # multiples of the model's own value
+    "friction": (0.0, 10.0),
+    "mass": (0.1, 10.0),
+    "strength": (0.0, 10.0),
+    "damping": (0.0, 10.0),
+    "armature": (0.0, 10.0),
+}
+PAYLOAD_SHARE_BOUNDS = (-0.5, 2.0)  # shares of the robot's mass
+MAX_PAYLOAD_SHARE = 2.0  # a payload in kg: at most twice the robot's mass
+MAX_COM = 0.5  # m, and at most the base's own size (`Randomizer`)
+MAX_START = 1.0  # rad or m of extra start noise
+MAX_PUSH = 5.0  # m/s: a harder kick is a collision, not a push
+PUSH_EVERY_BOUNDS = (0.0, 1e6)  # s
+MAX_LATENCY = 50  # control steps, and at most 1 s of control (`Randomizer`)
+MAX_LATENCY_SECONDS = 1.0
+NOISE_MULTIPLE = 10.0  # a signal's noise: at most this many times its default level
+NOISE_LIMIT = 10.0  # for a signal without a default level, in its own units
+MAX_NOISE_SIGNALS = 1000
+
+
+def noise_bound(signal: str) -> float:
+    """The most noise a signal may get, in its own units."""
+    default = DEFAULT_NOISE.get(signal)
+    return NOISE_LIMIT if default is None else NOISE_MULTIPLE * default
+
+
 @dataclass(frozen=True)
 class Randomization:
     """What differs between episodes, and by how much (each factor: None switches it off).
@@ -52,7 +81,8 @@ class Randomization:
     friction: Range | None = (0.5, 1.25)  # every geom's friction, one scale per episode
     per_geom_friction: bool = False  # or a scale per geom
     mass: Range | None = (0.9, 1.1)  # each body's mass and inertia, a scale per body
-    payload: Range | None = (0.0, 2.0)  # kg added at the floating base's centre of mass
+    payload: Range | None = None  # kg added at the floating base's centre of mass
+    payload_share: Range | None = (0.0, 0.15)  # or a share of the robot's own mass
     com: float | None = 0.02  # m: the base's centre of mass moves up to this on each axis
     strength: Range | None = (0.8, 1.2)  # each actuator's gain (a position actuator's kp)
     damping: Range | None = (0.8, 1.2)  # each joint's damping, a scale per joint
@@ -64,32 +94,42 @@ class Randomization:
     push_every: Range = (5.0, 10.0)  # s between pushes
 
     def __post_init__(self):
-        for name in ("friction", "mass", "strength", "damping", "armature"):
-            _check_range(self, name, positive=True)
+        for name, (low, high) in SCALE_BOUNDS.items():
+            _check_range(self, name, positive=True, bounds=(low, high))
         _check_range(self, "payload", positive=False)
-        for name in ("com", "start", "push"):
+        _check_range(self, "payload_share", positive=False, bounds=PAYLOAD_SHARE_BOUNDS)
+        for name, most in (("com", MAX_COM), ("start", MAX_START), ("push", MAX_PUSH)):
             value = getattr(self, name)
-            if value is not None and not (is_real(value) and 0 <= value < math.inf):
-                raise ValueError(f"randomize {name} must be a number >= 0 or null, got {value!r}")
-        _check_range(self, "push_every", positive=True, optional=False)
+            if value is not None and not (is_real(value) and 0 <= value <= most):
+                raise ValueError(
+                    f"randomize {name} must be a number in [0, {most:g}] or null, "
+                    f"got {short(value)}"
+                )
+        _check_range(self, "push_every", positive=True, optional=False, bounds=PUSH_EVERY_BOUNDS)
         if self.latency is not None:
             pair = finite_range(self.latency, "randomize latency")
-            if not all(v.is_integer() and v >= 0 for v in pair):
+            if not all(v.is_integer() and 0 <= v <= MAX_LATENCY for v in pair):
                 raise ValueError(
-                    f"randomize latency is [low, high] control steps, whole numbers >= 0, got "
-                    f"{self.latency!r}"
+                    f"randomize latency is [low, high] control steps, whole numbers in "
+                    f"0..{MAX_LATENCY}, got {short(self.latency)}"
                 )
             object.__setattr__(self, "latency", (int(pair[0]), int(pair[1])))
         if not isinstance(self.per_geom_friction, bool):
             raise ValueError("randomize per_geom_friction must be true or false")
         if self.noise is not None:
             levels = self.noise.items() if isinstance(self.noise, Mapping) else None
-            if levels is None or not all(
-                isinstance(k, str) and is_real(v) and 0 <= v < math.inf for k, v in levels
+            if (
+                levels is None
+                or len(self.noise) > MAX_NOISE_SIGNALS
+                or not all(
+                    isinstance(k, str) and is_real(v) and 0 <= v <= noise_bound(k)
+                    for k, v in levels
+                )
             ):
                 raise ValueError(
                     'randomize noise maps signal names to levels >= 0 (e.g. {"joint_pos": '
-                    f"0.01}}), got {self.noise!r}"
+                    f"0.01}}), each at most {NOISE_MULTIPLE:g}x its default level ({NOISE_LIMIT:g} "
+                    f"for a signal without one), got {short(self.noise)}"
                 )
             object.__setattr__(self, "noise", {k: float(v) for k, v in self.noise.items()})
 
@@ -136,13 +176,23 @@ class Randomization:
 _NOT_FACTORS = ("per_geom_friction", "push_every")
 
 
-def _check_range(config: Randomization, name: str, positive: bool, optional: bool = True) -> None:
+def _check_range(
+    config: Randomization,
+    name: str,
+    positive: bool,
+    optional: bool = True,
+    bounds: tuple[float, float] | None = None,
+) -> None:
     value = getattr(config, name)
     if value is None and optional:
         return
     low, high = finite_range(value, f"randomize {name}")
     if positive and low <= 0:
-        raise ValueError(f"randomize {name} must be [low, high] with 0 < low, got {value!r}")
+        raise ValueError(f"randomize {name} must be [low, high] with 0 < low, got {short(value)}")
+    if bounds is not None and not (bounds[0] <= low and high <= bounds[1]):
+        raise ValueError(
+            f"randomize {name} must lie within [{bounds[0]:g}, {bounds[1]:g}], got {short(value)}"
+        )
     object.__setattr__(config, name, (low, high))
 
 
@@ -175,18 +225,49 @@ class Randomizer:
                          "actuator_gainprm", "actuator_biasprm", "dof_damping", "dof_armature")
         }  # fmt: skip
         self._affine = model.actuator_biastype == int(mujoco.mjtBias.mjBIAS_AFFINE)
-        if config.payload is not None and self._base is not None:
-            lightest = self._nominal["body_mass"][self._base] * (config.mass or (1.0, 1.0))[0]
-            if lightest + config.payload[0] <= 0:
-                raise ValueError(
-                    f"{env_id}: randomize payload {list(config.payload)} would leave the base "
-                    f"(mass {lightest:g} kg at its lightest) with no mass; raise its low end"
-                )
+        self.robot_mass = float(model.body_mass[1:].sum())
+        self._check_against_model(env_id)
         self._scratch = mujoco.MjData(model)  # mj_setConst's workspace
         self._noise_index, self._noise_level = self._noise_table(signals, env_id)
         self.draws: dict[str, Any] = {}
         self._pending: list[np.ndarray] = []
         self._next_push = math.inf
+
+    def _check_against_model(self, env_id: str) -> None:
+        """The bounds that depend on the robot: payload (a multiple of its mass, and never a
+        base without mass), centre-of-mass offsets (the base's size), latency (1 s)."""
+        config = self.config
+        latency = config.latency[1] if config.latency is not None else 0
+        if latency * self._dt > MAX_LATENCY_SECONDS:
+            raise ValueError(
+                f"{env_id}: randomize latency {list(config.latency)} control steps is more than "
+                f"{MAX_LATENCY_SECONDS:g} s of control at {self._dt:g} s a step"
+            )
+        if self._base is None:
+            return
+        heaviest = MAX_PAYLOAD_SHARE * self.robot_mass
+        lightest = self._nominal["body_mass"][self._base] * (config.mass or (1.0, 1.0))[0]
+        for name, (low, high), unit in (
+            ("payload", config.payload or (0.0, 0.0), 1.0),
+            ("payload_share", config.payload_share or (0.0, 0.0), self.robot_mass),
+        ):
+            if high * unit > heaviest:
+                raise ValueError(
+                    f"{env_id}: randomize {name} up to {high:g} is more than "
+                    f"{MAX_PAYLOAD_SHARE:g}x the robot's mass ({self.robot_mass:.3g} kg)"
+                )
+            if lightest + low * unit <= 0:
+                raise ValueError(
+                    f"{env_id}: randomize {name} [{low:g}, {high:g}] would leave the base "
+                    f"(mass {lightest:g} kg at its lightest) with no mass; raise its low end"
+                )
+        base_geoms = self._model.geom_bodyid == self._base
+        size = float(self._model.geom_rbound[base_geoms].max()) if base_geoms.any() else MAX_COM
+        if config.com is not None and config.com > size:
+            raise ValueError(
+                f"{env_id}: randomize com {config.com:g} m moves the centre of mass outside the "
+                f"base (its geoms reach {size:.3g} m)"
+            )
 
     def _noise_table(self, signals, env_id: str) -> tuple[np.ndarray, np.ndarray]:
         """Which entries of the observation source get noise, and how much."""
@@ -217,8 +298,10 @@ class Randomizer:
             draws["friction"] = rng.uniform(*config.friction, count)
         if config.mass is not None:
             draws["mass"] = rng.uniform(*config.mass, model.nbody)
-        if config.payload is not None and self._base is not None:
-            draws["payload"] = float(rng.uniform(*config.payload))
+        if self._base is not None and (config.payload or config.payload_share):
+            kg = float(rng.uniform(*config.payload)) if config.payload else 0.0
+            share = float(rng.uniform(*config.payload_share)) if config.payload_share else 0.0
+            draws["payload"] = kg + share * self.robot_mass
         if config.com is not None and self._base is not None:
             draws["com"] = rng.uniform(-config.com, config.com, 3)
         if config.strength is not None:
@@ -331,8 +414,8 @@ class Randomizer:
         self._next_push = float(state["next_push"])
 
 
-SWEEPABLE = ("friction", "mass", "payload", "com", "strength", "damping", "armature", "start",
-             "latency", "push")  # fmt: skip
+SWEEPABLE = ("friction", "mass", "payload", "payload_share", "com", "strength", "damping",
+             "armature", "start", "latency", "push")  # fmt: skip
 
 
 def setting(factor: str, value: float) -> Randomization:

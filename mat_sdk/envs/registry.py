@@ -32,6 +32,7 @@ from mat_sdk.envs.games import CoordinationGame
 from mat_sdk.envs.mamujoco import PREFIX as MAMUJOCO
 from mat_sdk.envs.mamujoco import MaMuJoCoTeam
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam
+from mat_sdk.envs.recipe import TrainingRecipe
 from mat_sdk.envs.robots import FAMILIES, env_ids, spec_for
 from mat_sdk.envs.sources import RobotSpec
 from mat_sdk.envs.team import RobotTeam
@@ -142,6 +143,11 @@ def resolve(env_id: str | EnvSpec) -> EnvSpec:
         "module:function (a function returning from_dm_control / from_mjcf / from_pettingzoo), "
         f"or one registered under the entry-point group {ENTRY_POINT_GROUP!r}"
     )
+
+
+def recipe_of(env: str | EnvSpec) -> TrainingRecipe | None:
+    """The training recipe the env's task declares (`from_mjcf(recipe=)`), or None."""
+    return getattr(resolve(env), "recipe", None)
 
 
 # measured best of none / fraction / ends / near-ends / end-flags (docs/TRANSFER.md)

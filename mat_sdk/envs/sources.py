@@ -30,6 +30,7 @@ from mat_sdk.envs.checks import finite_range, is_real
 from mat_sdk.envs.features import Observation
 from mat_sdk.envs.model_task import ModelEnvironment
 from mat_sdk.envs.randomization import Randomization
+from mat_sdk.envs.recipe import TrainingRecipe
 
 Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
 # Physics steps per env step at most: more is no control rate, and one env step would run
@@ -63,6 +64,7 @@ class RobotSpec:
     # The task's reward in closed form, for speed; a test holds it equal to the task's.
     fast_reward: Callable[[control.Physics], float] | None = None
     description: str = ""
+    recipe: TrainingRecipe | None = None  # the PPO settings the task trains with (recipe.py)
 
     def names(self) -> list[str]:
         return list(self.agent_names) or [f"agent_{i}" for i in range(len(self.groups))]
@@ -232,6 +234,7 @@ def from_mjcf(
     *,
     terminate: Callable[[Any], bool] | Sequence | None = None,
     keyframe: str | None = None,
+    start: Mapping[str, float] | None = None,
     reset_noise: float = 0.1,
     root_noise: tuple[float, float] = (0.0, 0.0),
     observation: Observation | None = None,
@@ -244,16 +247,23 @@ def from_mjcf(
     agent_id: bool = True,
     root_features: bool = True,
     env_id: str | None = None,
+    only_positive_rewards: bool = False,
+    recipe: TrainingRecipe | None = None,
 ) -> RobotSpec:
     """A team over a bare MuJoCo model: `model` is an MJCF path or XML string.
 
     - `reward`: a function of the physics, or a list of reward terms (`envs.terms`);
       `terminate` (optional): a function that ends an episode when true, or a list of
       termination terms.
-    - Start: the `keyframe` (by name; `home` when the model has one, else qpos0), with noise
-      that respects each joint (`model_task`): hinges and slides by up to `reset_noise` in
-      their units (at most that fraction of half their range), a free base by `root_noise`
-      (horizontal metres, radians of turn). A start pose outside a joint's range is refused.
+    - Start: `start` joint angles by name (the base lowered onto the floor),
+      or the `keyframe` (by name; `home` when the model has one); a floating base with
+      neither is refused (qpos0 is rarely a standing pose). Noise respects each joint
+      (`model_task`): hinges and slides by up to `reset_noise` in their units (at most that
+      fraction of half their range), a free base by `root_noise` (horizontal metres, radians
+      of turn). A start pose outside a joint's range is refused.
+    - `only_positive_rewards` (legged_gym's): a step's reward is at least 0, so ending an
+      episode early never pays; the logs show what the floor added (term `floor`).
+    - `recipe` (`envs.TrainingRecipe`): the PPO settings `mat train` uses for this task.
     - `observation` (`envs.Observation`): build observations from signals the hardware has
       (joint encoders, IMU, sensors, contacts, command, previous action) instead of the raw
       joint state and the root's height, orientation and velocity (`root_features`).
@@ -289,10 +299,15 @@ def from_mjcf(
         raise ValueError(f"keyframe must be a keyframe's name or None, got {keyframe!r}")
     if commands is not None and not isinstance(commands, terms.VelocityCommand):
         raise ValueError(f"commands must be an envs.terms.VelocityCommand, got {commands!r}")
+    if start is not None and not isinstance(start, Mapping):
+        raise ValueError(f"start must map joint names to angles, got {start!r}")
+    if recipe is not None and not isinstance(recipe, TrainingRecipe):
+        raise ValueError(f"recipe must be an envs.TrainingRecipe, got {recipe!r}")
     randomization = Randomization.parse(randomize)
     factory = ModelEnvironment(
         source, _frozen(reward), _frozen(terminate), substeps, float(reset_noise), keyframe,
-        (shift, turn), commands,
+        (shift, turn), commands, None if start is None else tuple(start.items()),
+        bool(only_positive_rewards),
     )  # fmt: skip
     name = "model" if is_xml else Path(source).stem
     spec = from_dm_control(
@@ -307,6 +322,7 @@ def from_mjcf(
         env_id=env_id or f"mjcf:{name}",
         description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}",
     )
+    spec = replace(spec, recipe=recipe)
     if randomization is None:
         return spec
     spec = replace(spec, randomize=randomization)

@@ -117,6 +117,7 @@ class RobotTeam(ArrayTeam):
         self._reward = (
             spec.fast_reward if task is None and spec.fast_reward else self._task.get_reward
         )
+        self.reward_terms = tuple(getattr(self._task, "reward_terms", ()))
         self._build_action_map(zeroed)
         self._build_observation_map()
         given = spec.randomize if randomize is None else randomize
@@ -460,6 +461,9 @@ class RobotTeam(ArrayTeam):
         heading = self._data.xmat[self._base.body].reshape(3, 3)[:2, 0]
         position = self._data.qpos[self._base.qpos : self._base.qpos + 2].copy()
         return position, heading / max(float(np.linalg.norm(heading)), 1e-9)
+
+    def term_values(self) -> np.ndarray:
+        return self._task.term_values if self.reward_terms else np.zeros(0)
 
     def travelled(self) -> float:
         if self._start is None:

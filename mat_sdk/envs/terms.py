@@ -10,21 +10,60 @@ velocity commands, composed in `from_mjcf` without physics code.
     )
 
 A reward term's `value(step)` is what it measures, signed so that more is better (penalties
-are <= 0); the step's reward is the sum of `weight * value`. A termination term's
-`ends(step)` says whether the episode ends. `step` is a `Step`: the state after the env step,
-the command, and the actions of this step and the one before.
+are <= 0); the step's reward is the sum of `weight * value`, and each term's share is logged
+under its `name`. A termination term's `ends(step)` says whether the episode ends. `step` is a
+`Step`: the state after the env step, the command, and the actions of this step and the one
+before.
+
+Robot-relative units: penalties on effort, power, bouncing and height are measured in units
+of the robot itself (`RobotScale`: its weight, its standing height, the speed sqrt(g h) of
+a body falling that height), so one set of weights serves a 12 kg and a 50 kg quadruped. The
+old absolute forms stay as options (`Torque(relative=False)`, ...). docs/REAL_ROBOTS.md has
+the numbers behind the choice.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.checks import finite_range
+from mat_sdk.envs.checks import finite_range, is_real, short
 from mat_sdk.envs.trunk import Contacts, Trunk
+
+
+@dataclass(frozen=True)
+class RobotScale:
+    """The units robot-relative terms measure in: the robot's mass (kg), gravity (m/s^2) and
+    the floating base's standing height (m, at the start pose)."""
+
+    mass: float
+    gravity: float
+    height: float
+
+    @property
+    def weight(self) -> float:
+        """m g, N."""
+        return self.mass * self.gravity
+
+    @property
+    def torque(self) -> float:
+        """m g h, N m: the moment of the robot's weight at its own height."""
+        return self.weight * self.height
+
+    @property
+    def speed(self) -> float:
+        """sqrt(g h), m/s: a Froude speed; vertical speeds and power scale with it."""
+        return math.sqrt(self.gravity * self.height)
+
+    @classmethod
+    def of(cls, model: mujoco.MjModel, height: float) -> RobotScale:
+        mass = float(model.body_mass[1:].sum())
+        gravity = float(np.linalg.norm(model.opt.gravity)) or 9.81
+        return cls(mass, gravity, max(float(height), 1e-3))
 
 
 @dataclass
@@ -39,6 +78,7 @@ class Step:
     action: np.ndarray  # this step's action of every actuator, in [-1, 1] (undriven: 0)
     previous_action: np.ndarray
     control_timestep: float
+    scale: RobotScale | None = None  # the robot's own units (None: not a floating base)
     # what stateful terms remember within an episode (cleared at its start, checkpointed)
     memory: dict[str, np.ndarray] = field(default_factory=dict)
     _cache: dict = field(default_factory=dict)
@@ -62,9 +102,16 @@ class VelocityCommand:
     yaw_rate: tuple[float, float] = (0.0, 0.0)
     names = ("vx", "vy", "yaw_rate")
 
+    LIMIT = 10.0  # m/s and rad/s: far past any legged robot's, so a typo fails loudly
+
     def __post_init__(self):
         for name in self.names:
             low, high = finite_range(getattr(self, name), f"VelocityCommand.{name}")
+            if max(abs(low), abs(high)) > self.LIMIT:
+                raise ValueError(
+                    f"VelocityCommand.{name} must lie within +-{self.LIMIT:g}, got "
+                    f"[{low:.4g}, {high:.4g}]"
+                )
             object.__setattr__(self, name, (low, high))
 
     def sample(self, random: np.random.RandomState) -> np.ndarray:
@@ -73,10 +120,19 @@ class VelocityCommand:
 
     def check(self, command) -> np.ndarray:
         """A fixed command given as an env option (evaluation at one speed): three numbers."""
-        value = np.asarray(command, dtype=np.float64) if command is not None else None
-        if value is None or value.shape != (3,) or not np.isfinite(value).all():
+        try:
+            value = np.asarray(command, dtype=np.float64) if command is not None else None
+        except (TypeError, ValueError):
+            value = None
+        if (
+            value is None
+            or value.shape != (3,)
+            or not np.isfinite(value).all()
+            or np.abs(value).max() > self.LIMIT
+        ):
             raise ValueError(
-                f"command must be three finite numbers ({', '.join(self.names)}), got {command!r}"
+                f"command must be three finite numbers within +-{self.LIMIT:g} "
+                f"({', '.join(self.names)}), got {short(command)}"
             )
         return value
 
@@ -84,12 +140,33 @@ class VelocityCommand:
 # ------------------------------------------------------------------------- rewards
 @dataclass(frozen=True)
 class Term:
-    """A reward term: `weight * value(step)` is added to the step's reward."""
+    """A reward term: `weight * value(step)` is added to the step's reward. Its parameters
+    are checked when it is made (`_positive`, ...), not at the first step."""
 
     weight: float = 1.0
 
+    def __post_init__(self):
+        if not (is_real(self.weight) and math.isfinite(self.weight)):
+            raise ValueError(
+                f"{self.name}: weight must be a finite number, got {short(self.weight)}"
+            )
+
+    @property
+    def name(self) -> str:
+        """The term's name in logs and breakdowns: its class name in snake case."""
+        return re.sub(r"(?<!^)(?=[A-Z])", "_", type(self).__name__).lower()
+
     def value(self, step: Step) -> float:
         raise NotImplementedError
+
+    def _positive(self, *fields: str) -> None:
+        for field_name in fields:
+            value = getattr(self, field_name)
+            if not (is_real(value) and 0 < value < math.inf):
+                raise ValueError(
+                    f"{type(self).__name__}.{field_name} must be a finite number > 0, got "
+                    f"{short(value)}"
+                )
 
 
 @dataclass(frozen=True)
@@ -114,6 +191,11 @@ class TrackVelocity(Term):
     exp(-error^2 / sigma), 1 when exact."""
 
     sigma: float = 0.25
+    needs_commands = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("sigma")
 
     def value(self, step: Step) -> float:
         error = step.trunk.velocity(step.data)[:2] - step.command[:2]
@@ -125,6 +207,11 @@ class TrackYawRate(Term):
     """How closely the base's yaw rate follows the command's: exp(-error^2 / sigma)."""
 
     sigma: float = 0.25
+    needs_commands = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("sigma")
 
     def value(self, step: Step) -> float:
         error = step.trunk.angular_velocity(step.data)[2] - step.command[2]
@@ -138,9 +225,13 @@ class FeetAirTime(Term):
     asks to move; and every step, a foot in the air for longer than `longest` seconds costs
     the excess (a leg held up is no step: without it, three-legged gaits win)."""
 
-    feet: tuple[str, ...] = ()
+    feet: tuple[str, ...] = ()  # empty: the robot's feet (`LeggedRobot.feet`)
     threshold: float = 0.5
     longest: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("threshold", "longest")
 
     def value(self, step: Step) -> float:
         contacts = step.cached(("contacts", self.feet), lambda m: Contacts(m, self.feet))
@@ -167,10 +258,16 @@ class Upright(Term):
 
 @dataclass(frozen=True)
 class VerticalVelocity(Term):
-    """Minus the base's squared vertical speed: a smooth gait does not bounce."""
+    """Minus the base's squared vertical speed, in units of sqrt(g h) (`relative`, the
+    default) or m/s: a smooth gait does not bounce."""
+
+    relative: bool = True
 
     def value(self, step: Step) -> float:
-        return -float(step.trunk.world_velocity(step.data)[2] ** 2)
+        speed = step.trunk.world_velocity(step.data)[2]
+        if self.relative:
+            speed /= step.scale.speed
+        return -float(speed**2)
 
 
 @dataclass(frozen=True)
@@ -184,29 +281,48 @@ class RollPitchRate(Term):
 
 @dataclass(frozen=True)
 class BaseHeight(Term):
-    """Minus the squared distance of the base's height from `target` (m)."""
+    """Minus the squared distance of the base's height from `target`: a fraction of the
+    standing height (`relative`, the default; 1.0: as it starts) or metres."""
 
-    target: float = 0.3
+    target: float = 1.0
+    relative: bool = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("target")
 
     def value(self, step: Step) -> float:
-        return -float((step.trunk.height(step.data) - self.target) ** 2)
+        height = step.trunk.height(step.data)
+        if self.relative:
+            return -float((height / step.scale.height - self.target) ** 2)
+        return -float((height - self.target) ** 2)
 
 
 @dataclass(frozen=True)
 class Torque(Term):
-    """Minus the sum of squared actuator forces (N m): effort costs."""
+    """Minus the sum of squared actuator forces: effort costs. Relative (the default), each
+    force is in units of m g h, the moment of the robot's weight at its standing height, so
+    a robot twice as heavy pays the same for the same gait; absolute, in N m (or N)."""
+
+    relative: bool = True
 
     def value(self, step: Step) -> float:
         force = step.data.actuator_force
+        if self.relative:
+            force = force / step.scale.torque
         return -float(force @ force)
 
 
 @dataclass(frozen=True)
 class Energy(Term):
-    """Minus the mechanical power of the actuated joints, sum |force * joint velocity| (W)."""
+    """Minus the mechanical power of the actuated joints, sum |force * joint velocity|: in
+    units of m g sqrt(g h) (`relative`, the default), or W."""
+
+    relative: bool = True
 
     def value(self, step: Step) -> float:
-        return -float(np.abs(step.data.qfrc_actuator * step.data.qvel).sum())
+        power = float(np.abs(step.data.qfrc_actuator * step.data.qvel).sum())
+        return -power / (step.scale.weight * step.scale.speed) if self.relative else -power
 
 
 @dataclass(frozen=True)
@@ -224,6 +340,11 @@ class JointLimits(Term):
     units, summed): staying off the mechanical stops."""
 
     fraction: float = 0.9
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (is_real(self.fraction) and 0 < self.fraction <= 1):
+            raise ValueError(f"JointLimits.fraction must be in (0, 1], got {short(self.fraction)}")
 
     def value(self, step: Step) -> float:
         address, middle, half = step.cached(("limits", self.fraction), self._limits)
@@ -243,6 +364,12 @@ class TrunkHeight:
 
     minimum: float = 0.15
 
+    def __post_init__(self):
+        if not (is_real(self.minimum) and math.isfinite(self.minimum)):
+            raise ValueError(
+                f"TrunkHeight.minimum must be a finite number, got {short(self.minimum)}"
+            )
+
     def ends(self, step: Step) -> bool:
         return step.trunk.height(step.data) < self.minimum
 
@@ -253,6 +380,12 @@ class Tilt:
 
     degrees: float = 60.0
 
+    def __post_init__(self):
+        if not (is_real(self.degrees) and 0 < self.degrees <= 180):
+            raise ValueError(
+                f"Tilt.degrees must be a number in (0, 180], got {short(self.degrees)}"
+            )
+
     def ends(self, step: Step) -> bool:
         return -step.trunk.gravity(step.data)[2] < math.cos(math.radians(self.degrees))
 
@@ -261,7 +394,7 @@ class Tilt:
 class IllegalContact:
     """End the episode when any of these geoms or bodies (trunk, thighs) touches anything."""
 
-    names: tuple[str, ...] = ()
+    names: tuple[str, ...] = ()  # empty: the robot's trunk (`LeggedRobot.trunk`)
 
     def ends(self, step: Step) -> bool:
         contacts = step.cached(("contacts", self.names), lambda m: Contacts(m, self.names))

@@ -32,6 +32,7 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "episode_return": ((), np.float64),
     "episode_length": ((), np.int64),
     "episode_travel": ((), np.float64),  # a floating base's forward distance (else NaN)
+    "reward_terms": (("terms",), np.float64),  # the step's reward by named term (`reward_terms`)
     # teams with masks (`ArrayTeam.masks`): who is in the episode, and what each may choose
     "active": (("n",), np.float32),
     "left": (("n",), np.bool_),
@@ -87,6 +88,8 @@ class _EnvSlice:
             self._returns[k] += reward
             self._lengths[k] += 1
             b.reward[i], b.terminated[i], b.truncated[i] = reward, terminated, truncated
+            if b.sizes["terms"]:
+                b.reward_terms[i] = team.term_values()
             if terminated or truncated:
                 b.final_obs[i] = obs
                 b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
@@ -130,6 +133,7 @@ def _worker(
 
 _TEAM_ATTRIBUTES = (
     "env_id",
+    "reward_terms",
     "agents",
     "n_agents",
     "obs_dim",
@@ -182,6 +186,7 @@ class VecTeam:
             "obs": self.obs_dim,
             "act": self.action_width,
             "choices": self.action_size,
+            "terms": len(self.reward_terms),
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
@@ -231,6 +236,7 @@ class VecTeam:
             "episode_return": b.episode_return.copy(),
             "episode_length": b.episode_length.copy(),
             "episode_travel": b.episode_travel.copy(),
+            "reward_terms": b.reward_terms.copy(),
             "done": done,
         }
         if self.masks:
