@@ -6,8 +6,11 @@ start pose (legged robots), with a joint PD layer for torque motors.
 
 Without `JointTargets`, an action a in [-1, 1] maps linearly onto the actuator's control range
 (a = 0: its middle). With it, a is a joint target `start + scale * a` (rad or m) around the
-start pose: a position actuator gets that target as its control, clipped to its control
-range; a torque motor gets `kp (target - q) - kd dq/dt`, clipped to its control range and
+start pose, `scale` one number, or per joint in robot-relative units (`torque=`: the target
+reach that a joint's stiffness turns into that many times m g h, the moment of the robot's
+weight at its standing height, so a stiff, strong joint moves less per unit of action). A
+position actuator gets that target as its control, clipped to its control range; a torque
+motor gets `kp (target - q) - kd dq/dt`, clipped to its control range and
 recomputed at every physics step, as a robot's own low-level controller does.
 """
 
@@ -31,9 +34,10 @@ class JointTargets:
     scale: float = 0.5  # joint units (rad, m) per unit of action
     kp: float | None = None  # torque motors: stiffness, N m / rad
     kd: float | None = None  # torque motors: damping, N m s / rad
+    torque: float | None = None  # or per joint: kp * scale = torque * m g h (module docstring)
 
     def __post_init__(self):
-        for name in ("scale", "kp", "kd"):
+        for name in ("scale", "kp", "kd", "torque"):
             value = getattr(self, name)
             if value is None and name != "scale":
                 continue
@@ -53,7 +57,7 @@ class TargetMap:
     joint_qpos: np.ndarray
     joint_dof: np.ndarray
     offset: np.ndarray
-    scale: float
+    scale: np.ndarray  # per actuator
     low: np.ndarray
     high: np.ndarray
     pd: bool
@@ -69,11 +73,16 @@ class TargetMap:
 
 
 def target_map(
-    model: mujoco.MjModel, actuators: np.ndarray, start_qpos: np.ndarray, targets: JointTargets
+    model: mujoco.MjModel,
+    actuators: np.ndarray,
+    start_qpos: np.ndarray,
+    targets: JointTargets,
+    weight_moment: float | None = None,
 ) -> TargetMap:
     """The `TargetMap` of these actuators, or ValueError naming one that cannot take targets:
     one that does not drive a single hinge or slide, a torque motor without kp and kd, or a
-    position actuator given gains (its gains are the model's)."""
+    position actuator given gains (its gains are the model's). `weight_moment`: the robot's
+    m g h, for `JointTargets.torque`."""
     qpos, dof = [], []
     motor = []
     for actuator in actuators:
@@ -105,8 +114,18 @@ def target_map(
     limited = model.actuator_ctrllimited[actuators].astype(bool)
     low, high = np.where(limited, low, -np.inf), np.where(limited, high, np.inf)
     qpos = np.array(qpos, dtype=np.intp)
+    scale = np.full(len(actuators), float(targets.scale))
+    if targets.torque is not None:
+        if weight_moment is None:
+            raise ValueError("JointTargets(torque=) needs a floating base: it scales by m g h")
+        stiffness = (
+            np.full(len(actuators), targets.kp) if pd else -model.actuator_biasprm[actuators, 1]
+        )
+        if (stiffness <= 0).any():
+            raise ValueError("JointTargets(torque=) needs every joint's stiffness (kp) > 0")
+        scale = targets.torque * weight_moment / stiffness
     return TargetMap(
-        qpos, np.array(dof, dtype=np.intp), start_qpos[qpos].copy(), float(targets.scale),
+        qpos, np.array(dof, dtype=np.intp), start_qpos[qpos].copy(), scale,
         low, high, pd, float(targets.kp or 0.0), float(targets.kd or 0.0),
     )  # fmt: skip
 

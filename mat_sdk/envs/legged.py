@@ -59,7 +59,9 @@ class LeggedTask:
     randomize: bool | Mapping[str, Any] | None = True
     control_hz: float = 50.0
     episode_seconds: float = 20.0
-    action_scale: float = 0.5  # rad of joint target per unit of action
+    # joint target per unit of action, as the torque its stiffness turns it into, in units
+    # of m g h: 0.62 is the Go2's 0.5 rad at kp 50; a stiffer or lighter robot moves less
+    action_torque: float = 0.62
     root_noise: tuple[float, float] = (0.0, 0.05)
     only_positive_rewards: bool = True
     observation: Observation = field(
@@ -80,7 +82,7 @@ class LeggedTask:
             terminate=[_named_parts(term, robot) for term in self.terminate],
             commands=self.commands,
             observation=replace(self.observation, imu=robot.imu, contacts=tuple(robot.feet)),
-            actions=JointTargets(scale=self.action_scale),
+            actions=JointTargets(torque=self.action_torque),
             substeps=max(1, round(control_timestep / timestep)),
             episode_limit=round(self.episode_seconds * self.control_hz),
             root_noise=self.root_noise,

@@ -201,7 +201,11 @@ class RobotTeam(ArrayTeam):
         self._targets = None  # actions as joint targets around the start pose
         if self.spec.actions is not None:
             start = getattr(self._task, "start_qpos", self._model.qpos0)
-            self._targets = target_map(self._model, self._ctrl_index, start, self.spec.actions)
+            step = getattr(self._task, "_step", None)
+            moment = step.scale.torque if step is not None and step.scale else None
+            self._targets = target_map(
+                self._model, self._ctrl_index, start, self.spec.actions, moment
+            )
         # every driven actuator's action, as the task's terms and observations see it
         self._record = getattr(self._task, "record_action", None)
 
@@ -426,7 +430,7 @@ class RobotTeam(ArrayTeam):
             return {**column, "scale": half, "offset": float(self._ctrl_low[k]) + half}
         targets = self._targets
         column |= {
-            "scale": targets.scale,
+            "scale": float(targets.scale[k]),
             "offset": float(targets.offset[k]),
             "target": self._model.joint(int(self._model.actuator_trnid[ctrl, 0])).name,
         }
