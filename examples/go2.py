@@ -10,6 +10,10 @@ its own previous action. The reward follows the command (forward speed vx, sidew
 rate) and asks for a steady, smooth gait; an episode ends when the trunk tilts past 60
 degrees or touches the floor. docs/REAL_ROBOTS.md walks through every choice.
 
+This is the Go2's own task, its penalties in the Go2's units (N m, m/s), as measured in
+docs/REAL_ROBOTS.md sections 6-8. For any legged robot, the Go2 included, use the
+robot-relative task in `quadrupeds.py` (`mat_sdk.envs.legged.WALK`).
+
 `robots/unitree_go2/` is a trimmed copy of Menagerie's model (collision geometry only, its
 BSD-3-Clause license beside it); the full model with meshes works the same.
 """
@@ -29,10 +33,10 @@ REWARD = [
     terms.TrackYawRate(0.5),  # and yaw rate
     terms.Alive(0.25),  # falling ends the episode: staying up pays
     terms.Upright(1.0),
-    terms.VerticalVelocity(1.0),  # no bouncing
+    terms.VerticalVelocity(1.0, relative=False),  # no bouncing, in (m/s)^2
     terms.RollPitchRate(0.05),
     terms.ActionRate(0.01),  # smooth targets
-    terms.Torque(2e-4),  # effort
+    terms.Torque(2e-4, relative=False),  # effort, in (N m)^2: the Go2's own units
     terms.JointLimits(1.0),  # off the mechanical stops
     terms.FeetAirTime(1.0, FEET),  # strides, not shuffles: what makes a gait emerge early
 ]

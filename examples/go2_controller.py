@@ -96,11 +96,23 @@ def main() -> None:
         print(note)
     policy = Policy.load(args.bundle, threads=1)
     wiring = policy.wiring
-    if wiring is None or "joint_pos" not in wiring.source:
-        parser.error(f"{args.bundle} does not observe hardware signals (a go2:walk bundle does)")
-    robot = SimulatedGo2(
-        args.model, wiring.signals["joint_pos"], wiring.signals["contacts"], wiring.control_timestep
-    )
+    if wiring is None or not {"joint_pos", "contacts"} <= set(wiring.signals):
+        parser.error(
+            f"{args.bundle} does not observe the Go2's joint encoders and foot contacts (a "
+            "go2:walk bundle does)"
+        )
+    try:
+        robot = SimulatedGo2(
+            args.model, wiring.signals["joint_pos"], wiring.signals["contacts"],
+            wiring.control_timestep,
+        )  # fmt: skip
+    except KeyError as error:  # MuJoCo's lookup by name
+        parser.error(f"{args.bundle} names what {args.model.name} does not have: {error}")
+    if wiring.ctrl_index.max(initial=-1) >= robot.model.nu:
+        parser.error(
+            f"{args.bundle} drives actuator {wiring.ctrl_index.max()}, and {args.model.name} has "
+            f"{robot.model.nu}"
+        )
     n = len(wiring.agents)
     command = np.array(args.command)
     actions = np.zeros((n, policy.action_size), np.float32)

@@ -14,6 +14,8 @@ from mat_sdk import files
 from mat_sdk.checkpoint import remove_stale_temp_files
 
 METRICS_NAME = "metrics.csv"
+# what every row has (`update_metrics`) and the curve reads; a header without them is no run's
+REQUIRED_COLUMNS = ("steps", "updates", "return_mean", "return_min", "return_max", "episodes")
 CURVE_NAME = "learning_curve.png"
 
 
@@ -31,6 +33,12 @@ class RunLog:
         self.path = self.out_dir / METRICS_NAME
         _set_aside_if_foreign(self.path)
         self._columns, rows, intact = _complete_rows(self.path)
+        missing = [c for c in REQUIRED_COLUMNS if c not in (self._columns or REQUIRED_COLUMNS)]
+        if missing:
+            raise ValueError(
+                f"{self.path} lacks the columns {missing} that every row of this SDK has (edited, "
+                "or another program's?); move it aside to start a new one, nothing else is touched"
+            )
         kept = [r for r in rows if int(r["updates"]) <= resume_after]
         if self._columns is None and not intact:  # only a torn header: nothing to keep
             self.path.write_text("")

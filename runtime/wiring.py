@@ -28,6 +28,9 @@ import numpy as np
 
 from mat_runtime.manifest import _fail, integer, real, string, strings
 
+CONTROL_TIMESTEP = (1e-5, 10.0)  # s: a controller ticks at 100 kHz at most, 0.1 Hz at least
+MAX_ACTUATORS = 100_000  # a ctrl index past it is no robot's
+
 
 def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> None:
     """Raise `BundleError` naming the first field of `wiring` that is malformed."""
@@ -38,8 +41,12 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
 
     need("", None if isinstance(wiring, dict) else f"must be an object, got {wiring!r}")
     need("control_timestep", real(wiring.get("control_timestep")))
-    if wiring["control_timestep"] <= 0:
-        need("control_timestep", f"must be > 0, got {wiring['control_timestep']!r}")
+    if not CONTROL_TIMESTEP[0] <= wiring["control_timestep"] <= CONTROL_TIMESTEP[1]:
+        need(
+            "control_timestep",
+            f"must be in [{CONTROL_TIMESTEP[0]:g}, {CONTROL_TIMESTEP[1]:g}] s, "
+            f"got {wiring['control_timestep']!r}",
+        )
     need("normalizer", string(wiring.get("normalizer")))
     agents = wiring.get("agents")
     if not isinstance(agents, list) or not agents:
@@ -57,11 +64,30 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
             need(field, None if isinstance(column, dict) else "must be an object")
             for key in ("scale", "offset"):
                 need(f"{field}.{key}", real(column.get(key)))
-            if column.get("ctrl") is not None:
-                need(f"{field}.ctrl", integer(0)(column["ctrl"]))
+            if column.get("ctrl") is None:
+                continue
+            need(f"{field}.ctrl", integer(0)(column["ctrl"]))
+            if column["ctrl"] >= MAX_ACTUATORS:
+                need(f"{field}.ctrl", f"must be below {MAX_ACTUATORS}, got {column['ctrl']!r}")
+            need(f"{field}.actuator", string(column.get("actuator")))
             for key in ("low", "high", "kp", "kd"):
                 if column.get(key) is not None:
                     need(f"{field}.{key}", real(column[key]))
+            low, high = column.get("low"), column.get("high")
+            if low is not None and high is not None and low > high:
+                need(field, f"has low {low!r} > high {high!r}")
+            if column.get("kp") is None and column.get("kd") is None:
+                continue
+            for key in ("kp", "kd"):  # a torque motor: its PD layer, fully
+                need(f"{field}.{key}", real(column.get(key)))
+                if column[key] < 0:
+                    need(f"{field}.{key}", f"must be >= 0, got {column[key]!r}")
+            need(f"{field}.target", string(column.get("target")))
+            torque = column.get("torque")
+            if not (isinstance(torque, list) and len(torque) == 2) or any(map(real, torque)):
+                need(f"{field}.torque", f"must be [low, high], two finite numbers, got {torque!r}")
+            if torque[0] > torque[1]:
+                need(f"{field}.torque", f"must have low <= high, got {torque!r}")
     observation = wiring.get("observation")
     if observation is None:
         return
@@ -96,6 +122,9 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
         not isinstance(offset, list) or len(offset) != end or any(map(real, offset))
     ):
         need("observation.offset", f"must be {end} finite numbers, got {str(offset)[:80]}")
+    signals = observation.get("signals", {})
+    if not isinstance(signals, dict) or any(strings(labels) for labels in signals.values()):
+        need("observation.signals", f"must map signal names to lists of labels, got {signals!r}")
     features = observation.get("features")
     if not isinstance(features, list):
         need("observation.features", f"must be a list, got {features!r}")
@@ -117,6 +146,7 @@ class Wiring:
         self.agents: list[dict[str, Any]] = wiring["agents"]
         self.normalizer: str = wiring["normalizer"]
         columns = [(i, j, c) for i, a in enumerate(self.agents) for j, c in enumerate(a["action"])]
+        self.action_shape = (len(self.agents), len(self.agents[0]["action"]))
         driven = [(i, j, c) for i, j, c in columns if c.get("ctrl") is not None]
         self._action_rows = np.array([i for i, _, _ in driven], dtype=np.intp)
         self._action_cols = np.array([j for _, j, _ in driven], dtype=np.intp)
@@ -170,9 +200,11 @@ class Wiring:
             value = given.get(name)
             if value is None and not (name == "task" and stop == start):
                 raise ValueError(f"signal {name} is missing; this bundle observes {self._inputs}")
-            value = np.zeros(0) if value is None else np.asarray(value, dtype=np.float64)
+            value = np.zeros(0) if value is None else _reading(value, name)
             if value.shape != (stop - start,):
                 raise ValueError(f"{name} must have {stop - start} values, got shape {value.shape}")
+            if not np.isfinite(value).all():
+                raise ValueError(f"signal {name} holds NaN or infinite values: {value[:8]}")
             self._buffer[start:stop] = value
         source = self._buffer if self._source_offset is None else self._buffer - self._source_offset
         return source[self._index].astype(np.float32)
@@ -182,7 +214,16 @@ class Wiring:
         `ctrl = offset + scale * clip(action, -1, 1)`, clipped to each column's low / high,
         for every column that drives one. For a torque motor the value is the joint's
         target; `gains` gives the (joint, kp, kd) that the robot's PD loop turns into torque."""
-        values = np.clip(np.asarray(actions)[self._action_rows, self._action_cols], -1.0, 1.0)
+        actions = _reading(actions, "actions")
+        if actions.shape != self.action_shape:
+            raise ValueError(
+                f"actions must have shape [agents, width] = {list(self.action_shape)}, got "
+                f"{list(actions.shape)}"
+            )
+        values = actions[self._action_rows, self._action_cols]
+        if not np.isfinite(values).all():
+            raise ValueError("actions hold NaN or infinite values: no command is sent from them")
+        values = np.clip(values, -1.0, 1.0)
         return self.ctrl_index, np.clip(self._offset + self._scale * values, self._low, self._high)
 
     def describe(self) -> str:
@@ -203,6 +244,14 @@ class Wiring:
         else:
             lines.append("observation: built by the env itself (no layout in the bundle)")
         return "\n".join(lines)
+
+
+def _reading(value, name: str) -> np.ndarray:
+    """`value` as real float64 numbers, or ValueError naming it (complex, text, objects)."""
+    array = np.asarray(value)
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"{name} must be real numbers, got an array of {array.dtype}")
+    return array.astype(np.float64)
 
 
 def _bound(value, default: float) -> float:

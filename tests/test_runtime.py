@@ -735,6 +735,12 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
             "agents": 3,
         }
 
+    def edit_column(**fields):
+        def edit(manifest, _):
+            manifest["wiring"]["agents"][0]["action"][0].update(fields)
+
+        return edit
+
     cases = {
         "obs_dim": (set_field("obs_dim", -17), r"obs_dim must be an integer in 1\.\."),
         "huge": (set_field("obs_dim", 10**30), r"obs_dim must be an integer in 1\.\."),
@@ -760,7 +766,34 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
         "relabelled": (relabel, r"decode_n3\.onnx: .*has shape \['batch', 2"),
         "truncated": (truncate, "cannot load this graph"),
         "timestep": (
-            set_field("wiring", "control_timestep", -1), r"wiring\.control_timestep must be > 0"
+            set_field("wiring", "control_timestep", -1), r"wiring\.control_timestep must be in"
+        ),
+        "huge timestep": (
+            set_field("wiring", "control_timestep", 1e300), r"wiring\.control_timestep must be in"
+        ),
+        "tiny timestep": (
+            set_field("wiring", "control_timestep", 1e-300), r"wiring\.control_timestep must be in"
+        ),
+        "ctrl": (
+            set_field("wiring", "agents", 0, "action", 0, "ctrl", 10**9),
+            r"wiring\.agents\[0\]\.action\[0\]\.ctrl must be below",
+        ),
+        "low above high": (
+            edit_column(low=1.0, high=-1.0), r"action\[0\] has low 1.0 > high -1.0"
+        ),
+        "kp without target": (edit_column(kp=5.0, kd=0.1), r"action\[0\]\.target must be a string"),
+        "kp alone": (edit_column(kp=5.0), r"action\[0\]\.kd must be a finite number"),
+        "negative kp": (
+            edit_column(kp=-5.0, kd=0.1, target="thigh", torque=[-1, 1]),
+            r"action\[0\]\.kp must be >= 0",
+        ),
+        "torque": (
+            edit_column(kp=5.0, kd=0.1, target="thigh", torque=[1, -1]),
+            r"action\[0\]\.torque must have low <= high",
+        ),
+        "signals": (
+            set_field("wiring", "observation", "signals", 5),
+            r"wiring\.observation\.signals must map signal names",
         ),
         "columns": (
             set_field("wiring", "agents", 0, "action", []), r"wiring\.agents\[0\]\.action must list"
@@ -848,3 +881,29 @@ def test_a_negative_seed_is_an_input_error(bundles):
     with pytest.raises(InputError, match="seed must be an int >= 0, got -1"):
         policy.act(_obs(policy, 2), deterministic=False, seed=-1)
     assert policy.act(_obs(policy, 2)).shape == (2, policy.action_size)  # still serving
+
+
+def test_the_wiring_refuses_malformed_readings_and_actions(bundles):
+    """What a controller hands the wiring is checked: a command is never made from NaN
+    actions or an array of another shape, nor an observation from complex or NaN readings."""
+    policy = Policy.load(bundles["mat"][1])
+    wiring = policy.wiring
+    team = make_team("hopper-2x2", seed=0)
+    data = team.physics.data
+    actions = np.zeros((len(wiring.agents), policy.action_size))
+    index, values = wiring.commands(actions)
+    assert np.isfinite(values).all() and len(index) == len(values)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        wiring.commands(np.full_like(actions, np.nan))
+    for shape in [(6, 3), (4, 3, 1), (len(wiring.agents),)]:
+        with pytest.raises(ValueError, match=r"actions must have shape \[agents, width\]"):
+            wiring.commands(np.zeros(shape))
+    with pytest.raises(ValueError, match="actions must be real numbers"):
+        wiring.commands(actions.astype(complex))
+    qpos, qvel = data.qpos.copy(), data.qvel.copy()
+    assert wiring.observe(qpos, qvel, team.task_features()).shape[0] == len(wiring.agents)
+    with pytest.raises(ValueError, match="qpos must be real numbers"):
+        wiring.observe(qpos.astype(complex), qvel, team.task_features())
+    qpos[1] = np.nan
+    with pytest.raises(ValueError, match="signal qpos holds NaN"):
+        wiring.observe(qpos, qvel, team.task_features())

@@ -1,0 +1,182 @@
+"""One task definition for any legged robot (`mat_sdk.envs.legged`): robot-relative terms,
+named per-term logs, start poses from joint angles, the task's training recipe and lean
+physics copies, on the trimmed Menagerie Go2, A1 and Spot in examples/robots/."""
+
+from __future__ import annotations
+
+import copy
+import csv
+import re
+
+import mujoco
+import numpy as np
+import pytest
+from helpers import TINY
+
+from mat_sdk import envs
+from mat_sdk.envs import terms
+from mat_sdk.envs.legged import WALK
+from mat_sdk.recipes import with_examples
+from mat_sdk.runs import RunRequest, with_task_recipe
+from mat_sdk.trainer import Trainer
+
+with_examples()
+import quadrupeds  # noqa: E402  (examples/, put on the path just above)
+
+
+@pytest.mark.parametrize("robot", ["go2", "a1", "spot"])
+def test_each_terms_share_is_logged_and_they_sum_to_the_reward(robot):
+    team = envs.make_team(f"quadrupeds:{robot}", seed=0)
+    assert team.reward_terms == (*(t.name for t in WALK.reward), "floor")
+    team.reset(seed=0)
+    random = np.random.default_rng(0)
+    floored = 0
+    for _ in range(60):
+        _, reward, terminated, _ = team.advance(random.uniform(-1, 1, (4, 3)))
+        values = team.term_values()
+        assert values.sum() == pytest.approx(reward, abs=1e-9)
+        assert reward >= 0.0 and values[-1] >= 0.0  # only positive rewards: the floor lifts
+        floored += values[-1] > 0
+        if terminated:
+            team.reset()
+    assert floored > 0  # random actions cost more than they earn somewhere: the floor acts
+
+
+def test_training_writes_each_terms_mean_per_step(tmp_path):
+    with Trainer("quadrupeds:a1", out_dir=tmp_path, **TINY) as trainer:
+        trainer.learn(2 * TINY["num_envs"] * TINY["rollout_length"], progress_bar=False)
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    names = [f"reward/{t.name}" for t in WALK.reward] + ["reward/floor"]
+    for row in rows:
+        total = sum(float(row[name]) for name in names)
+        assert total == pytest.approx(float(row["reward_per_step"]), rel=1e-4, abs=1e-5)
+
+
+def test_a_start_pose_is_lowered_until_the_feet_touch_the_floor():
+    """The A1 from joint angles (its keyframe ignored) starts where its keyframe has it: the
+    base within 5 mm of the keyframe's 0.27 m, every foot on the floor, nothing in it."""
+    team = envs.make_team("quadrupeds:a1", seed=0, randomize=False)
+    model = team.physics.model.ptr
+    start = team._task.start_qpos
+    assert start[2] == pytest.approx(0.27, abs=5e-3)
+    data = mujoco.MjData(model)
+    data.qpos[:] = start
+    mujoco.mj_forward(model, data)
+    assert data.ncon == 0  # nothing in the floor
+    data.qpos[2] -= 5e-4  # half a millimetre lower, every foot touches it
+    mujoco.mj_forward(model, data)
+    contacts = data.contact[: data.ncon]
+    bodies = {model.body(int(model.geom_bodyid[g])).name for g in contacts.geom.reshape(-1)}
+    assert {f"{leg}_calf" for leg in quadrupeds.LEGS} <= bodies
+    assert contacts.dist.min() > -1e-3
+
+
+def test_a_floating_base_without_a_keyframe_or_start_is_refused(tmp_path):
+    folder = quadrupeds.ROBOTS / "unitree_a1"
+    xml = (folder / "a1.xml").read_text()
+    (tmp_path / "a1.xml").write_text(re.sub(r"<keyframe>.*</keyframe>", "", xml, flags=re.S))
+    (tmp_path / "scene.xml").write_text((folder / "scene.xml").read_text())
+    no_key = tmp_path / "scene.xml"
+    layout = {leg: [f"{leg}_hip", f"{leg}_thigh", f"{leg}_calf"] for leg in quadrupeds.LEGS}
+    with pytest.raises(ValueError, match=r"floating base but no 'home' keyframe.*start="):
+        envs.from_mjcf(no_key, layout, [terms.Alive(1.0)])
+    spec = envs.from_mjcf(no_key, layout, [terms.Alive(1.0)], start=quadrupeds.A1.start)
+    assert spec.build(seed=0)._task.start_qpos[2] > 0.2  # standing, not straight-legged
+
+
+def test_robot_relative_penalties_do_not_change_when_masses_and_forces_scale_together():
+    """A robot twice as heavy with motors twice as strong moves the same way: its relative
+    effort, power and bouncing cost the same, the absolute forms do not."""
+    source = envs.make_team("quadrupeds:spot", seed=0, randomize=False).physics.model.ptr
+    values = {}
+    for factor in (1.0, 2.0):
+        model = copy.copy(source)
+        model.body_mass[:] *= factor
+        model.body_inertia[:] *= factor
+        model.actuator_gainprm[:, 0] *= factor
+        model.actuator_biasprm[:, :3] *= factor
+        data = mujoco.MjData(model)
+        mujoco.mj_setConst(model, data)  # the solver's inertia-derived constants
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+        step = terms.Step(
+            data, model, terms_trunk(model), np.zeros(3), np.zeros(12), np.zeros(12), 0.02,
+            terms.RobotScale.of(model, data.qpos[2]),
+        )  # fmt: skip
+        random = np.random.default_rng(0)
+        totals = np.zeros(5)
+        for _ in range(50):
+            data.ctrl[:] = model.key_ctrl[0] + random.uniform(-0.3, 0.3, model.nu)
+            mujoco.mj_step(model, data, 10)
+            totals += [
+                terms.Torque().value(step), terms.Energy().value(step),
+                terms.VerticalVelocity().value(step), terms.Torque(relative=False).value(step),
+                terms.Energy(relative=False).value(step),
+            ]  # fmt: skip
+        values[factor] = totals
+    relative, absolute = slice(0, 3), slice(3, 5)
+    assert np.allclose(values[1.0][relative], values[2.0][relative], rtol=1e-3)
+    assert np.all(np.abs(values[2.0][absolute]) > 1.9 * np.abs(values[1.0][absolute]))
+
+
+def terms_trunk(model):
+    from mat_sdk.envs.trunk import Trunk
+
+    return Trunk(model)
+
+
+def test_joint_targets_reach_as_far_as_the_robots_weight_moment_over_each_stiffness():
+    scales = {}
+    for robot in ("go2", "a1", "spot"):
+        team = envs.make_team(f"quadrupeds:{robot}", seed=0)
+        scale = team._task._step.scale
+        kp = -team.physics.model.ptr.actuator_biasprm[:, 1]
+        assert np.allclose(team._targets.scale, WALK.action_torque * scale.torque / kp)
+        scales[robot] = float(team._targets.scale[0])
+    assert scales["go2"] == pytest.approx(0.5, abs=0.01)  # the Go2's measured 0.5 rad
+    assert scales["a1"] < scales["spot"] < scales["go2"]  # A1's kp 100, Spot's 500
+
+
+def test_the_task_recipe_is_what_mat_train_and_trainer_use_unless_overridden():
+    recipe = WALK.recipe.settings()
+    with Trainer("quadrupeds:a1", num_envs=2, rollout_length=5) as trainer:
+        config = trainer.config
+        assert (config.num_envs, config.rollout_length) == (2, 5)  # the caller's
+        assert config.lr == recipe["lr"] and config.entropy_coef == recipe["entropy_coef"]
+    request = RunRequest(["quadrupeds:a1"], options={"num_envs": 8, "lr": 1e-3}, given=["lr"])
+    chosen = with_task_recipe(request)
+    assert chosen.options["num_envs"] == recipe["num_envs"]  # a CLI default gives way
+    assert chosen.options["lr"] == 1e-3  # what the user chose does not
+    assert chosen.tune is False
+
+
+TEXTURED = """
+<mujoco>
+  <asset>
+    <texture name="big" type="2d" builtin="checker" width="2048" height="2048"/>
+    <material name="skin" texture="big"/>
+  </asset>
+  <worldbody>
+    <geom type="plane" size="5 5 .1"/>
+    <body name="base" pos="0 0 .5">
+      <freejoint/>
+      <geom type="box" size=".1 .1 .1"/>
+      <geom type="sphere" size=".12" material="skin" contype="0" conaffinity="0"/>
+      <body name="leg">
+        <joint name="hip" axis="0 1 0" range="-1 1"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -.3" size=".02"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><position name="hip" joint="hip" kp="20"/></actuator>
+  <keyframe><key name="home" qpos="0 0 .45 1 0 0 0 0" ctrl="0"/></keyframe>
+</mujoco>
+"""
+
+
+def test_physics_copies_carry_no_visual_assets():
+    """A 2048 x 2048 texture (12 MB) and a visual-only geom stay out of every env copy."""
+    full = mujoco.MjModel.from_xml_string(TEXTURED)
+    team = envs.from_mjcf(TEXTURED, {"leg": ["hip"]}, [terms.Alive(1.0)]).build(seed=0)
+    lean = team.physics.model.ptr
+    assert full.ntex == 1 and full.ntexdata > 10_000_000
+    assert lean.ntex == 0 and lean.ngeom == full.ngeom - 1
