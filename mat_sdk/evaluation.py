@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -91,6 +91,21 @@ class Episodes:
     lengths: list[int]
     ended: list[bool]
     speeds: list[float]
+    # a reward built from named terms: each term's mean per step over these episodes
+    terms: dict[str, float] = field(default_factory=dict)
+
+    def breakdown(self) -> str:
+        """Each reward term's mean per step and its share of all terms' magnitude (penalties
+        negative): which term rules the reward. Empty for a reward without named terms."""
+        if not self.terms:
+            return ""
+        magnitude = sum(abs(v) for v in self.terms.values()) or 1.0
+        width = max(map(len, self.terms))
+        lines = [f"{'reward term':<{width}}  per step    share"]
+        for name, mean in sorted(self.terms.items(), key=lambda item: -abs(item[1])):
+            lines.append(f"{name:<{width}}  {mean:+9.4f}  {100 * mean / magnitude:+6.1f} %")
+        lines.append(f"{'total':<{width}}  {sum(self.terms.values()):+9.4f}")
+        return "\n".join(lines)
 
     def summary(self) -> str:
         """One line: return mean +- std, early ends, mean speed where there is one."""
@@ -176,6 +191,7 @@ def evaluate_episodes(
         check_fits(loaded.policy.cfg, vec, env_id)
         obs = vec.reset(seed=seed)
         returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)
+        term_sums, term_steps = np.zeros(len(vec.reward_terms)), 0
         lengths, ended = np.zeros(episodes, dtype=np.int64), np.zeros(episodes, dtype=bool)
         frames = []
         recorder = envs.make_team(env_id, faults=faults, seed=seed, **options) if video else None
@@ -187,7 +203,10 @@ def evaluate_episodes(
             if recorder is not None and len(frames) < recorder.episode_limit:
                 frames.append(recorder.render())
                 recorder.step(actions[0])
+            running = np.isnan(returns)  # each copy counts its first episode only
             obs, _, terminated, _, info = vec.step(actions)
+            term_sums += info["reward_terms"][running].sum(axis=0)
+            term_steps += int(running.sum())
             first = info["done"] & np.isnan(returns)
             returns[first] = info["episode_return"][first]
             lengths[first], ended[first] = info["episode_length"][first], terminated[first]
@@ -196,7 +215,8 @@ def evaluate_episodes(
     if video:
         write_video(frames, video, fps=round(1 / recorder.control_timestep))
     speeds = travel / np.maximum(lengths * timestep, 1e-9)
-    return Episodes(returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist())
+    terms = dict(zip(vec.reward_terms, (term_sums / max(term_steps, 1)).tolist(), strict=True))
+    return Episodes(returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist(), terms)
 
 
 def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Path:

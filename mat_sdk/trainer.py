@@ -26,6 +26,7 @@ from mat_sdk import checkpoint, envs, files, happo, ppo
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
+from mat_sdk.envs.reward_check import check_reward
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import HAPPO, ModelConfig, PolicyNetwork, build_policy, check_fits
@@ -93,6 +94,8 @@ class Trainer:
                 env.close()
             raise
         self.env = self.envs[0]  # the shapes and names: the first env's
+        if self.env.reward_terms and not cfg.init_from:  # warn before training, not after
+            self.notes += check_reward(cfg.env, cfg.faults, cfg.seed, cfg.env_options)
         self.model_config = cfg.model_config(self.env)
         self.policy: PolicyNetwork = build_policy(self.model_config).to(self.device)
         self.build_optimizer()

@@ -180,3 +180,35 @@ def test_physics_copies_carry_no_visual_assets():
     lean = team.physics.model.ptr
     assert full.ntex == 1 and full.ntexdata > 10_000_000
     assert lean.ntex == 0 and lean.ngeom == full.ngeom - 1
+
+
+def test_a_penalty_in_another_robots_units_is_warned_about_before_training():
+    """The Go2's absolute torque weight on a robot where it costs far more than any positive
+    term earns: the trainer warns, naming the term; the robot-relative task does not."""
+    from mat_sdk.envs.reward_check import RewardWarning
+
+    heavy = [terms.Alive(0.25), terms.Torque(1e-2, relative=False)]
+    spec = envs.from_mjcf(
+        quadrupeds.SPOT.model, quadrupeds.SPOT.layout, heavy, actions=envs.JointTargets(0.5)
+    )
+    with pytest.warns(RewardWarning, match="reward term 'torque' costs"):
+        Trainer(spec, **TINY).close()
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RewardWarning)
+        Trainer("quadrupeds:spot", **TINY).close()
+
+
+def test_mat_eval_breaks_the_reward_down_by_term(tmp_path):
+    from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
+
+    with Trainer("quadrupeds:a1", **TINY) as trainer:
+        path = trainer.save(tmp_path / "a1.pt")
+    loaded = CheckpointPolicy.from_checkpoint(path)
+    episodes = evaluate_episodes(loaded, 2, episode_limit=30, trust_env_code=True)
+    assert set(episodes.terms) == {*(t.name for t in WALK.reward), "floor"}
+    steps = sum(episodes.lengths)
+    assert sum(episodes.terms.values()) * steps == pytest.approx(sum(episodes.returns), rel=1e-6)
+    table = episodes.breakdown()
+    assert table.splitlines()[0].startswith("reward term") and "track_velocity" in table

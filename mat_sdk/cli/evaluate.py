@@ -72,6 +72,8 @@ def evaluate(
     )
     name = env_id or loaded.config["train"]["env"]
     click.echo(f"{name}: {result.summary()}")
+    if result.terms:
+        click.echo(result.breakdown())
     if video:
         click.echo(f"video: {video}")
 
