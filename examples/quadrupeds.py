@@ -56,3 +56,19 @@ def a1():
 
 def spot():
     return WALK.spec(SPOT)
+
+
+def go2_task_on_spot():
+    """The Go2's own task (`go2.py`: penalties in the Go2's units) on Spot, names alone
+    changed, as a new user would first try it: for comparison in docs/REAL_ROBOTS.md."""
+    import go2
+
+    from mat_sdk import envs
+
+    return envs.from_mjcf(
+        SPOT.model, SPOT.layout, [*go2.REWARD[:-1], go2.terms.FeetAirTime(1.0, SPOT.feet)],
+        terminate=[go2.terms.Tilt(60.0), go2.terms.IllegalContact(SPOT.trunk)],
+        commands=go2.WALK, actions=envs.JointTargets(scale=0.5), substeps=10,
+        episode_limit=1000, root_noise=(0.0, 0.05),
+        observation=envs.Observation(imu=SPOT.imu, contacts=SPOT.feet, last_action=True),
+    )  # fmt: skip

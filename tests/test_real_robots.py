@@ -53,8 +53,12 @@ def test_episodes_start_from_home_with_noise_inside_every_joints_range():
 
 def test_a_start_outside_a_joints_range_and_an_unknown_keyframe_are_refused():
     no_home = re.sub(r"<keyframe>.*</keyframe>", "", MJX, flags=re.S)
-    with pytest.raises(ValueError, match=r"puts joint 'FL_calf_joint' at 0, outside its range"):
+    with pytest.raises(ValueError, match=r"floating base but no 'home' keyframe.*start="):
         envs.from_mjcf(no_home, go2.LAYOUT, go2.REWARD)
+    with pytest.raises(ValueError, match=r"puts joint 'FL_calf_joint' at 0, outside its range"):
+        bad = '<key name="bad" qpos="0 0 0.27 1 0 0 0 0 0.9 0 0 0.9 -1.8 0 0.9 -1.8 0 0.9 -1.8"/>'
+        keyed = MJX.replace("<keyframe>", f"<keyframe>{bad}")
+        envs.from_mjcf(keyed, go2.LAYOUT, go2.REWARD, keyframe="bad")
     with pytest.raises(ValueError, match="no keyframe named 'crouch'; its keyframes: home"):
         envs.from_mjcf(MJX, go2.LAYOUT, go2.REWARD, keyframe="crouch")
 
