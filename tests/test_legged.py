@@ -212,3 +212,44 @@ def test_mat_eval_breaks_the_reward_down_by_term(tmp_path):
     assert sum(episodes.terms.values()) * steps == pytest.approx(sum(episodes.returns), rel=1e-6)
     table = episodes.breakdown()
     assert table.splitlines()[0].startswith("reward term") and "track_velocity" in table
+
+
+GRIPPER = """
+<mujoco>
+  <worldbody>
+    <body name="palm">
+      <joint name="wrist" axis="0 0 1" range="-1 1"/>
+      <geom type="box" size=".04 .02 .02"/>
+      <body name="left"><joint name="left" type="slide" axis="1 0 0" range="0 0.037"/>
+        <geom type="box" size=".005 .01 .03" pos=".02 0 -.04"/></body>
+      <body name="right"><joint name="right" type="slide" axis="-1 0 0" range="0 0.037"/>
+        <geom type="box" size=".005 .01 .03" pos="-.02 0 -.04"/></body>
+    </body>
+  </worldbody>
+  <equality><joint joint1="right" joint2="left" polycoef="0 1 0 0 0"/></equality>
+  <actuator>
+    <position name="wrist" joint="wrist" kp="10"/>
+    <position name="grip" joint="left" kp="100" ctrlrange="0 0.037"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def test_reset_noise_keeps_coupled_fingers_coupled_and_in_range():
+    """A gripper's second finger follows the first through its joint equality at every
+    reset, from the task's noise and the randomization's start noise alike."""
+    spec = envs.from_mjcf(
+        GRIPPER, {"wrist": ["wrist"], "hand": ["grip"]}, lambda physics: 0.0,
+        reset_noise=0.5, randomize={"defaults": False, "start": 0.5},
+    )  # fmt: skip
+    team = spec.build(seed=0)
+    model = team.physics.model.ptr
+    left, right = (model.jnt_qposadr[model.joint(n).id] for n in ("left", "right"))
+    positions = []
+    for episode in range(30):
+        team.reset(seed=episode)
+        qpos = team.physics.data.qpos
+        assert qpos[right] == pytest.approx(qpos[left], abs=1e-12)
+        assert 0.0 <= qpos[left] <= 0.037
+        positions.append(qpos[left])
+    assert np.ptp(positions) > 0.01  # the noise moves the fingers, together

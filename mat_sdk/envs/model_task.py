@@ -189,6 +189,27 @@ def _holding_controls(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     return ctrl
 
 
+def couple_joints(model: mujoco.MjModel, qpos: np.ndarray) -> None:
+    """Put every joint that an active joint equality couples to another (a gripper's second
+    finger, a linkage) where the coupling has it, inside its range, in place: noise drawn
+    per joint would pull coupled joints apart and jam them past their stops."""
+    joint_equality = int(mujoco.mjtEq.mjEQ_JOINT)
+    for k in range(model.neq):
+        if model.eq_type[k] != joint_equality or not model.eq_active0[k]:
+            continue
+        first, second = int(model.eq_obj1id[k]), int(model.eq_obj2id[k])
+        c = model.eq_data[k, :5]
+        offset = 0.0
+        if second >= 0:
+            d = qpos[model.jnt_qposadr[second]] - model.qpos0[model.jnt_qposadr[second]]
+            offset = c[1] * d + c[2] * d**2 + c[3] * d**3 + c[4] * d**4
+        address = model.jnt_qposadr[first]
+        value = model.qpos0[address] + c[0] + offset
+        if model.jnt_limited[first]:
+            value = np.clip(value, *model.jnt_range[first])
+        qpos[address] = value
+
+
 def _ranged_joints(model: mujoco.MjModel) -> list[int]:
     return [
         j
@@ -236,6 +257,7 @@ class ModelTask(base.Task):
         for joint in _ranged_joints(model):  # noise never leaves a joint's range
             address = model.jnt_qposadr[joint]
             qpos[address] = np.clip(qpos[address], *model.jnt_range[joint])
+        couple_joints(model, qpos)
         data.qpos[:] = qpos
         data.qvel[:] = scale_v * velocity
         data.ctrl[:] = self.start_ctrl

@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from mat_sdk.envs.checks import finite_range, is_real, short
+from mat_sdk.envs.model_task import couple_joints
 from mat_sdk.envs.trunk import Trunk
 
 Range = tuple[float, float]
@@ -361,6 +362,7 @@ class Randomizer:
             if model.jnt_limited[joint]:
                 value = np.clip(value, *model.jnt_range[joint])
             data.qpos[address] = value
+        couple_joints(model, data.qpos)
 
     def _push_interval(self, rng) -> float:
         if self.config.push is None or self._base is None:
