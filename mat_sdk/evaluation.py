@@ -16,6 +16,7 @@ from mat_sdk.model import PolicyNetwork, check_fits
 from mat_sdk.normalization import RunningMeanStd
 
 VIDEO_SUFFIXES = (".mp4", ".gif")  # what write_video's imageio writers produce
+VIDEO_FPS = 30  # frames rendered per simulated second (a 50 Hz robot: every other step)
 
 
 @dataclass
@@ -193,16 +194,20 @@ def evaluate_episodes(
         returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)
         term_sums, term_steps = np.zeros(len(vec.reward_terms)), 0
         lengths, ended = np.zeros(episodes, dtype=np.int64), np.zeros(episodes, dtype=bool)
-        frames = []
-        recorder = envs.make_team(env_id, faults=faults, seed=seed, **options) if video else None
-        if recorder is not None:
+        frames, recorded = [], 0
+        recorder = None
+        if video:  # env 0's episode again, on a copy with the model's visual assets
+            recorder = envs.make_team(env_id, faults=faults, seed=seed, visual=True, **options)
             recorder.reset(seed=seed)
+            stride = max(1, round(1 / (recorder.control_timestep * VIDEO_FPS)))
         while np.isnan(returns).any():
             available = vec.available() if vec.action_type == "discrete" else None
             actions = loaded.act(obs, deterministic, generator, available)
-            if recorder is not None and len(frames) < recorder.episode_limit:
-                frames.append(recorder.render())
+            if recorder is not None and recorded < recorder.episode_limit:
+                if recorded % stride == 0:  # frames at the video's rate, not every step
+                    frames.append(recorder.render())
                 recorder.step(actions[0])
+                recorded += 1
             running = np.isnan(returns)  # each copy counts its first episode only
             obs, _, terminated, _, info = vec.step(actions)
             term_sums += info["reward_terms"][running].sum(axis=0)
@@ -213,7 +218,7 @@ def evaluate_episodes(
             travel[first] = info["episode_travel"][first]
         timestep = vec.control_timestep
     if video:
-        write_video(frames, video, fps=round(1 / recorder.control_timestep))
+        write_video(frames, video, fps=round(1 / (recorder.control_timestep * stride)))
     speeds = travel / np.maximum(lengths * timestep, 1e-9)
     terms = dict(zip(vec.reward_terms, (term_sums / max(term_steps, 1)).tolist(), strict=True))
     return Episodes(returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist(), terms)

@@ -253,3 +253,24 @@ def test_reset_noise_keeps_coupled_fingers_coupled_and_in_range():
         assert 0.0 <= qpos[left] <= 0.037
         positions.append(qpos[left])
     assert np.ptp(positions) > 0.01  # the noise moves the fingers, together
+
+
+def test_a_video_is_rendered_at_its_frame_rate_from_a_copy_with_the_visual_assets(tmp_path):
+    """At 50 Hz control, a 30 fps video renders every other step (20 steps, 10 frames), and
+    its recorder keeps the texture that the env copies leave out."""
+    import imageio.v2 as imageio
+    from test_envs import gl_context_problem
+
+    from mat_sdk.evaluation import evaluate_episodes
+
+    problem = gl_context_problem()
+    if problem:  # only a missing GL context skips; any other render failure fails
+        pytest.skip(f"no OpenGL context can be made here ({problem})")
+    spec = envs.from_mjcf(
+        TEXTURED, {"leg": ["hip"]}, [terms.Alive(1.0)], substeps=10, episode_limit=20
+    )
+    assert envs.make_team(spec, visual=True).physics.model.ptr.ntex == 1
+    with Trainer(spec, **TINY) as trainer:
+        loaded = trainer._as_loaded()
+        evaluate_episodes(loaded, 1, video=tmp_path / "run.gif")
+    assert len(imageio.mimread(tmp_path / "run.gif")) == 10

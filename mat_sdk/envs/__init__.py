@@ -37,6 +37,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 # Headless by default: EGL renders without a display. Set MUJOCO_GL yourself to override.
@@ -55,6 +56,7 @@ logging.getLogger("absl").addFilter(_QuietSuiteModels())
 from mat_sdk.envs import terms
 from mat_sdk.envs.actuation import JointTargets
 from mat_sdk.envs.features import Observation
+from mat_sdk.envs.model_task import ModelEnvironment
 from mat_sdk.envs.parallel import TeamParallelEnv
 from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
 from mat_sdk.envs.randomization import Randomization
@@ -116,9 +118,17 @@ __all__ = [
 Env = str | EnvSpec
 
 
-def make_team(env: Env, faults: Mapping[str, str] | None = None, **options: Any):
-    """The array-level team (`step(actions [n, action_width])`), the fastest single env."""
-    return build_team(env, faults, **options)
+def make_team(
+    env: Env, faults: Mapping[str, str] | None = None, visual: bool = False, **options: Any
+):
+    """The array-level team (`step(actions [n, action_width])`), the fastest single env.
+    `visual`: to render, an MJCF model compiled with the visual assets (textures, visual
+    meshes) that env copies leave out."""
+    spec = resolve(env)
+    factory = getattr(spec, "env_factory", None)
+    if visual and isinstance(factory, ModelEnvironment):
+        spec = replace(spec, env_factory=replace(factory, visual=True))
+    return build_team(spec, faults, **options)
 
 
 def make(
