@@ -73,7 +73,10 @@ def test_files_that_are_not_models_are_refused(tmp_path):
     (tmp_path / "robot.xml").write_text(including)
     with pytest.raises(ValueError, match="robot.xml: MuJoCo cannot load it"):
         envs.from_mjcf(tmp_path / "robot.xml", LAYOUT, still)
-    meshed = ARM.replace("<worldbody>", '<asset><mesh file="notes.txt"/></asset><worldbody>')
+    meshed = ARM.replace(  # a mesh that collides: physics copies load it too
+        "<worldbody>",
+        '<asset><mesh file="notes.txt"/></asset><worldbody><geom mesh="notes" type="mesh"/>',
+    )
     (tmp_path / "meshed.xml").write_text(meshed)
     with pytest.raises(ValueError, match="meshed.xml: MuJoCo cannot load it"):
         envs.from_mjcf(tmp_path / "meshed.xml", LAYOUT, still)

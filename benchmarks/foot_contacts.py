@@ -1,0 +1,58 @@
+"""How a legged policy walks: each foot's share of control steps on the floor, from the
+robot's own contact signal, over one episode at a fixed command (the first second left out).
+
+    PYTHONPATH=examples python benchmarks/foot_contacts.py runs/spot/seed_*/checkpoint.pt \\
+        --command 0.7 0 0 --steps 450
+
+A foot near 1.0 never lifts; near 0.0 it is held up (a three-legged gait); a walking trot
+has every foot between about 0.4 and 0.8.
+"""
+
+from __future__ import annotations
+
+import glob
+
+import click
+import numpy as np
+
+from mat_sdk import envs
+from mat_sdk.evaluation import CheckpointPolicy
+
+
+def contact_shares(path: str, command: tuple[float, float, float], steps: int, seed: int):
+    """(foot names, each foot's share of `steps` steps in contact) for one checkpoint."""
+    loaded = CheckpointPolicy.from_checkpoint(path)
+    train = loaded.config["train"]
+    envs.check_trusted([train["env"]], True, path)  # the user named these files
+    team = envs.make_team(train["env"], seed=seed, command=list(command), **train["env_options"])
+    start, stop = team.wiring()["observation"]["source"]["contacts"]
+    feet = team.wiring()["observation"]["signals"]["contacts"]
+    obs = team.reset(seed=seed)
+    warmup = round(1.0 / team.control_timestep)
+    touching = np.zeros(stop - start)
+    for step in range(warmup + steps):
+        action = loaded.act(obs[None])[0]
+        obs, _, terminated, truncated = team.advance(action)
+        if step >= warmup:
+            touching += team._source()[start:stop] > 0
+        if terminated or truncated:
+            break
+    return feet, touching / steps
+
+
+@click.command()
+@click.argument("patterns", nargs=-1, required=True)
+@click.option("--command", type=float, nargs=3, default=(0.7, 0.0, 0.0), show_default=True)
+@click.option("--steps", default=450, show_default=True, help="steps counted after the first s")
+@click.option("--seed", default=10_000, show_default=True)
+def main(patterns, command, steps, seed) -> None:
+    for path in sorted(p for pattern in patterns for p in glob.glob(pattern)):
+        feet, shares = contact_shares(path, command, steps, seed)
+        print(
+            f"{path}: "
+            + " / ".join(f"{foot} {share:.2f}" for foot, share in zip(feet, shares, strict=False))
+        )
+
+
+if __name__ == "__main__":
+    main()
