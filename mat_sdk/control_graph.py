@@ -452,39 +452,55 @@ def _loop(
         size = g.const([count], "count", np.int64)
         trips[count], left = g.op("Div", left, size), g.op("Mod", left, size)
         starts[count] = left  # the agents before this loop's: the smaller loops serve them
-    carried, runs = [first, *empty], []
+    # what the steps so far output, [B, agents so far, ..]: nothing yet
+    outputs = {name: _none_yet(g, batch, size) for name, size in step.outputs().items()}
+    carried = [first, *empty]
     for count in sorted(LOOP_STEPS):  # the agents in order: single steps first
         first_agents = g.op("Add", starts[count], g.const(np.arange(count), "steps", np.int64))
         carried, outputs = _loop_run(
-            g, step, packed, widths, batch, carried, caches, count, trips[count], first_agents
+            g, step, packed, widths, carried, outputs, caches, count, trips[count], first_agents
         )
-        runs.append(outputs)
-    return {name: g.op("Concat", *(run[name] for run in runs), axis=1) for name in runs[0]}
+    return outputs
+
+
+def _none_yet(g: GraphBuilder, batch: str, size: int) -> str:
+    """No agent's output yet: [B, 0, size] floats, or [B, 0] integers (`size` 0: choices)."""
+    rest = [0, size] if size else [0]
+    dtype = np.float32 if size else np.int64
+    shape = g.op("Concat", batch, g.const(rest, "rest", np.int64), axis=0)
+    return g.op("Expand", g.const(np.zeros([1, *rest]), "none", dtype), shape)
 
 
 def _loop_run(
-    g: GraphBuilder, step, packed, widths, batch, carried, caches, count, trips, first_agents
+    g: GraphBuilder, step, packed, widths, carried, outputs, caches, count, trips, first_agents
 ):
     """One `Loop` whose body runs `count` agent steps; iteration i serves the agents
-    `first_agents + i * count`. -> (final carried values, {name: [B, trips * count, ..]})."""
+    `first_agents + i * count` and appends their outputs to `outputs` [B, agents so far, ..],
+    carried through the loop: no scan outputs, whose stacking engines disagree on (ONNX's
+    reference evaluator concatenates them on their first axis, ONNX Runtime stacks them on
+    a new one) and which a loop that runs zero times leaves without a shape.
+    -> (final carried values, {name: [B, agents so far, ..]})."""
     body = GraphBuilder(g.weights, prefix=f"steps{count}/")
     i, cond, x = (f"steps{count}/{name}" for name in ("i", "cond", "x"))
     past = [f"steps{count}/past.{c}" for c in caches]
+    done = {name: f"steps{count}/done.{name}" for name in outputs}
     index = body.op("Add", body.op("Mul", i, body.const(count, "count", np.int64)), first_agents)
     mine = body.op("Gather", packed, index, axis=1)  # [B, count, all per-agent widths]
     sizes = body.const(list(widths.values()), "sizes", np.int64)
     parts = body.op("Split", mine, sizes, axis=-1, outputs=len(widths))
     slices = {name: _split(body, part, count) for name, part in zip(widths, parts, strict=True)}
-    token, present, outputs = _steps(body, step, slices, x, past, count)
+    token, present, new = _steps(body, step, slices, x, past, count)
+    grown = {name: body.op("Concat", done[name], new[name], axis=1) for name in outputs}
     width = step.cfg.n_embd
     dims = _cache_dims(step.cfg)
     cache_shape = ["batch", *dims[:-1], "past", dims[-1]]
-    scanned = [
-        helper.make_tensor_value_info(outputs[name], INT64, ["batch", count])
-        if size == 0
-        else _value(outputs[name], ["batch", count, size])
-        for name, size in step.outputs().items()
-    ]
+
+    def accumulated(name: str, tensor: str, agents: str) -> onnx.ValueInfoProto:
+        size = step.outputs()[name]
+        if size == 0:
+            return helper.make_tensor_value_info(tensor, INT64, ["batch", agents])
+        return _value(tensor, ["batch", agents, size])
+
     loop_body = helper.make_graph(
         body.nodes,
         f"steps{count}",
@@ -493,26 +509,21 @@ def _loop_run(
             helper.make_tensor_value_info(cond, TensorProto.BOOL, []),
             _value(x, ["batch", 1, width]),
             *(_value(p, cache_shape) for p in past),
+            *(accumulated(name, done[name], "agents_before") for name in outputs),
         ],
         [
             helper.make_tensor_value_info(cond, TensorProto.BOOL, []),  # passed through
             _value(token, ["batch", 1, width]),
             *(_value(p, cache_shape) for p in present),
-            *scanned,
+            *(accumulated(name, grown[name], "agents_after") for name in outputs),
         ],
         body.initializers,
     )
     results = g.op(
         "Loop", g.op("Squeeze", trips), g.const(True, "true", np.bool_), *carried,
-        outputs=len(carried) + len(scanned), body=loop_body,
+        *outputs.values(), outputs=len(carried) + len(outputs), body=loop_body,
     )  # fmt: skip
-    stacked = {}
-    for (name, size), tensor in zip(step.outputs().items(), results[len(carried) :], strict=True):
-        rest = [-1] + [size] * bool(size)  # [trips, B, count, ..] -> [B, trips * count, ..]
-        shape = g.op("Concat", batch, g.const(rest, "rest", np.int64), axis=0)
-        perm = [1, 0, 2] + [3] * bool(size)
-        stacked[name] = g.op("Reshape", g.op("Transpose", tensor, perm=perm), shape)
-    return results[: len(carried)], stacked
+    return results[: len(carried)], dict(zip(outputs, results[len(carried) :], strict=True))
 
 
 def _split(g: GraphBuilder, tensor: str, count: int) -> list[str]:
