@@ -29,7 +29,7 @@ if __name__ == "__main__":  # prove the point: importing torch now raises Import
 import mujoco
 import numpy as np
 
-from mat_runtime import Policy, loop
+from mat_runtime import BundleError, Policy, loop
 
 MODEL = Path(__file__).parent / "robots" / "unitree_go2" / "scene_mjx.xml"
 
@@ -94,7 +94,10 @@ def main() -> None:
 
     for note in loop.realtime(args.cpu, None):
         print(note)
-    policy = Policy.load(args.bundle, threads=1)
+    try:
+        policy = Policy.load(args.bundle, threads=1)
+    except BundleError as error:  # a damaged or edited bundle: say which field, once
+        parser.error(str(error))
     wiring = policy.wiring
     if wiring is None or not {"joint_pos", "contacts"} <= set(wiring.signals):
         parser.error(

@@ -297,3 +297,41 @@ def test_a_weak_fault_scales_that_motors_force_and_no_other(env_id):
 def test_a_weak_fault_outside_0_to_1_is_refused_naming_it(mode):
     with pytest.raises(ValueError, match=f"fault FR_calf_joint='{mode}'.*strictly between 0 and 1"):
         envs.make_team("go2:walk", faults={"FR_calf_joint": mode})
+
+
+@pytest.mark.parametrize(
+    ("edit", "problem"),
+    [
+        (
+            lambda w: w["observation"]["signals"]["joint_pos"].__setitem__(0, "no_joint"),
+            "names what scene_mjx.xml does not have",
+        ),
+        (
+            lambda w: w["observation"]["signals"].pop("contacts"),
+            "does not observe the Go2's joint encoders and foot contacts",
+        ),
+        (
+            lambda w: w["agents"][0]["action"][0].__setitem__("ctrl", 10**4),
+            "drives actuator 10000, and scene_mjx.xml has 12",
+        ),
+        (lambda w: w.__setitem__("control_timestep", 1e300), "control_timestep must be in"),
+        (lambda w: w.__setitem__("control_timestep", 1e-300), "control_timestep must be in"),
+    ],
+    ids=["joint", "contacts", "ctrl", "slow", "fast"],
+)
+def test_the_go2_controller_refuses_an_edited_bundle_in_one_line(bundle, tmp_path, edit, problem):
+    import json
+    import shutil
+
+    edited = tmp_path / "onnx"
+    shutil.copytree(bundle, edited)
+    manifest = json.loads((edited / "manifest.json").read_text())
+    edit(manifest["wiring"])
+    (edited / "manifest.json").write_text(json.dumps(manifest))
+    run = subprocess.run(
+        [sys.executable, str(REPO / "examples" / "go2_controller.py"), str(edited),
+         "--seconds", "0.2"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode != 0 and problem in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr
