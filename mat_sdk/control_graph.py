@@ -454,7 +454,8 @@ def _loop(
         starts[count] = left  # the agents before this loop's: the smaller loops serve them
     # what the steps so far output, [B, agents so far, ..]: nothing yet
     outputs = {name: _none_yet(g, batch, size) for name, size in step.outputs().items()}
-    carried = [first, *empty]
+    # a name per carried value: OpenVINO's ONNX reader counts a tensor given twice once
+    carried = [first, *(g.op("Identity", cache) for cache in empty)]
     for count in sorted(LOOP_STEPS):  # the agents in order: single steps first
         first_agents = g.op("Add", starts[count], g.const(np.arange(count), "steps", np.int64))
         carried, outputs = _loop_run(
@@ -512,7 +513,8 @@ def _loop_run(
             *(accumulated(name, done[name], "agents_before") for name in outputs),
         ],
         [
-            helper.make_tensor_value_info(cond, TensorProto.BOOL, []),  # passed through
+            # cond passed on under a name of its own, as every carried value has
+            helper.make_tensor_value_info(body.op("Identity", cond), TensorProto.BOOL, []),
             _value(token, ["batch", 1, width]),
             *(_value(p, cache_shape) for p in present),
             *(accumulated(name, grown[name], "agents_after") for name in outputs),
