@@ -320,7 +320,8 @@ def from_mjcf(
         observation=observation,
         actions=actions,
         env_id=env_id or f"mjcf:{name}",
-        description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}",
+        description=f"{len(_split_layout(layout)[1])} agents over the MJCF model {name}; "
+        + _start_said(keyframe, start),
     )
     spec = replace(spec, recipe=recipe)
     if randomization is None:
@@ -328,6 +329,15 @@ def from_mjcf(
     spec = replace(spec, randomize=randomization)
     spec.build()  # refuse what the randomization cannot apply to this model, now
     return spec
+
+
+def _start_said(keyframe: str | None, start: Mapping[str, float] | None) -> str:
+    """Where episodes start, for `mat envs` and `describe()`."""
+    if start is not None:
+        return f"episodes start from {len(start)} given joint angles, the base on the floor"
+    if keyframe is not None:
+        return f"episodes start from keyframe {keyframe!r}"
+    return "episodes start from keyframe 'home' where the model has one, else qpos0"
 
 
 def _frozen(value: Any) -> Any:
