@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import threading
 import warnings
 from pathlib import Path
 
@@ -17,6 +18,18 @@ METRICS_NAME = "metrics.csv"
 # what every row has (`update_metrics`) and the curve reads; a header without them is no run's
 REQUIRED_COLUMNS = ("steps", "updates", "return_mean", "return_min", "return_max", "episodes")
 CURVE_NAME = "learning_curve.png"
+
+
+def _quiet_tensorboard_disk_errors(args: threading.ExceptHookArgs) -> None:
+    """TensorBoard writes its events in a thread of its own, which re-raises a disk error
+    (full, read-only) there; the run's next write raises it again, as one line
+    (`files.writing`). Print nothing for the thread's copy; anything else as before."""
+    if type(args.thread).__name__ == "_AsyncWriterThread" and isinstance(args.exc_value, OSError):
+        return
+    _previous_excepthook(args)
+
+
+_previous_excepthook = threading.excepthook
 
 
 class RunLog:
@@ -46,7 +59,10 @@ class RunLog:
             self._rewrite(kept)
         self._file = self.path.open("a", newline="")
         self._writer = None
-        self._tensorboard = SummaryWriter(log_dir=str(self.out_dir / "tensorboard"))
+        threading.excepthook = _quiet_tensorboard_disk_errors
+        events = self.out_dir / "tensorboard"
+        with files.writing(events):
+            self._tensorboard = SummaryWriter(log_dir=str(events))
 
     def _rewrite(self, rows: list[dict]) -> None:
         """Replace the file atomically: a crash during the repair loses no row."""

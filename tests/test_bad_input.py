@@ -427,3 +427,26 @@ def test_the_report_extra_pins_what_its_statistics_need():
 
     project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
     assert "pandas<3" in project["project"]["optional-dependencies"]["report"]
+
+
+@pytest.mark.parametrize("after", [0, 3], ids=["from the start", "mid-run"])
+def test_a_disk_that_fills_under_tensorboard_is_one_line_and_no_thread_traceback(
+    tmp_path, monkeypatch, capfd, after
+):
+    """TensorBoard's writer thread meets the full disk first: the run stops with the one-line
+    error, and the thread prints no traceback of its own."""
+    from tensorboard.summary.writer import record_writer
+
+    real, calls = record_writer.RecordWriter.write, {"n": 0}
+
+    def no_room(self, data):
+        calls["n"] += 1
+        if calls["n"] > after:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+
+    trainer = Trainer("cheetah-2x3", out_dir=tmp_path, **TINY)
+    monkeypatch.setattr(record_writer.RecordWriter, "write", no_room)
+    with trainer, pytest.raises(files.WriteFailed, match="no space left on device"):
+        trainer.learn(2000, progress_bar=False)
+    assert "Traceback" not in capfd.readouterr().err
