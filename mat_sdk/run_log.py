@@ -26,10 +26,10 @@ def _quiet_tensorboard_disk_errors(args: threading.ExceptHookArgs) -> None:
     (`files.writing`). Print nothing for the thread's copy; anything else as before."""
     if type(args.thread).__name__ == "_AsyncWriterThread" and isinstance(args.exc_value, OSError):
         return
-    _previous_excepthook(args)
+    _quiet_tensorboard_disk_errors.previous(args)
 
 
-_previous_excepthook = threading.excepthook
+_quiet_tensorboard_disk_errors.previous = threading.excepthook
 
 
 class RunLog:
@@ -59,7 +59,9 @@ class RunLog:
             self._rewrite(kept)
         self._file = self.path.open("a", newline="")
         self._writer = None
-        threading.excepthook = _quiet_tensorboard_disk_errors
+        if threading.excepthook is not _quiet_tensorboard_disk_errors:  # the app's hook after
+            _quiet_tensorboard_disk_errors.previous = threading.excepthook
+            threading.excepthook = _quiet_tensorboard_disk_errors
         events = self.out_dir / "tensorboard"
         with files.writing(events):
             self._tensorboard = SummaryWriter(log_dir=str(events))

@@ -429,6 +429,7 @@ def test_the_report_extra_pins_what_its_statistics_need():
     assert "pandas<3" in project["project"]["optional-dependencies"]["report"]
 
 
+@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
 @pytest.mark.parametrize("after", [0, 3], ids=["from the start", "mid-run"])
 def test_a_disk_that_fills_under_tensorboard_is_one_line_and_no_thread_traceback(
     tmp_path, monkeypatch, capfd, after
