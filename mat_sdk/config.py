@@ -103,7 +103,7 @@ class TrainConfig:
     # Advantages are scaled by their batch std, floored at this (reward units). When nearly
     # every sample earns the same return, that std is only the critic's error, and dividing by
     # it turns the error into full-size policy steps that drift a solved policy away (the
-    # coordination game: 3 of 8 seeds fell from 1.0 to 2/3). 0: the official 1e-5 epsilon only.
+    # coordination game). 0: the official 1e-5 epsilon only.
     advantage_std_floor: float = 0.0
     n_embd: int = 64
     n_head: int = 1

@@ -45,7 +45,7 @@ def _streamed(cfg) -> bool:
     """Whether the decoder's attention scores the cached action stream itself (one head) or
     per-head keys and values (several heads). Streaming saves the key/value projections but
     gives every head the stream's full width, which loses to per-head caches as heads grow
-    (BENCHMARKS.md, 2026-11-23, 4662891)."""
+    (BENCHMARKS.md)."""
     return cfg.n_head == 1
 
 

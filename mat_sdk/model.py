@@ -16,8 +16,9 @@ entries, which is what serves a thousand agents in linear time and memory; on a 
 also makes what an agent's encoding sees the same whatever the chain's length.
 
 MAT-Dec shares MAT's encoder/critic but acts with one shared MLP per agent on its own
-observation; MAPPO pairs a shared MLP actor with a centralised MLP critic. All three expose
-`evaluate` (teacher-forced, for PPO) and `act` (sampling, for rollouts).
+observation; MAPPO pairs a shared MLP actor with a centralised MLP critic; HAPPO gives each
+agent its own actor. All four expose `evaluate_actions` (teacher-forced, for PPO) and `act`
+(sampling, for rollouts).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-ALGOS = ("mat", "mat-dec", "mappo", "happo")
+from mat_runtime.manifest import ALGOS  # one list for the trainer, the exporter and the runtime
+
 # Algorithms whose critic reads the joint observation of a fixed number of agents
 FIXED_TEAM = ("mappo", "happo")
 ACTION_TYPES = ("continuous", "discrete")

@@ -392,7 +392,7 @@ class Randomizer:
 
     def noise(self, source: np.ndarray, rng) -> None:
         """Add this step's observation noise to the observation source, in place."""
-        if len(self._noise_index):  # `random` is 3x faster than RandomState's `uniform`
+        if len(self._noise_index):  # `random` is faster than RandomState's `uniform`
             draw = rng.random(len(self._noise_index))
             source[self._noise_index] += 2.0 * self._noise_level * draw - self._noise_level
 

@@ -166,7 +166,7 @@ class VecTeam:
     process and W worker processes when there is a core for each: the caller steps its own
     share while the workers step theirs, instead of idling while it waits for them. With
     fewer cores than W + 1, the workers step every copy and the caller only waits, since a
-    third process on two cores slows every step (1.25x against 1.68x, BENCHMARKS.md).
+    third process on two cores slows every step (BENCHMARKS.md has the figures).
     """
 
     def __init__(self, make_team: TeamFactory, num_envs: int, workers: int = 0, seed: int = 0):
