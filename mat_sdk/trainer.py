@@ -54,9 +54,10 @@ class Trainer:
         one). The checkpoint records the id; a spec's id is known only in this process, a
         module-level function's `module:function` id everywhere. A task that declares a
         training recipe (`envs.TrainingRecipe`) trains with it; `options` override it."""
-        recipe = envs.recipe_of(env)
+        env_id = envs.id_of(env)
+        recipe = envs.recipe_of(env_id)
         task = {k: v for k, v in recipe.settings().items() if k not in options} if recipe else {}
-        self.config = TrainConfig.for_algo(algo, env=envs.id_of(env), **task, **options)
+        self.config = TrainConfig.for_algo(algo, env=env_id, **task, **options)
         cfg = self.config
         self.notes: list[str] = []  # decisions taken for the user, in words
         if task:

@@ -54,13 +54,13 @@ def test_episodes_start_from_home_with_noise_inside_every_joints_range():
 def test_a_start_outside_a_joints_range_and_an_unknown_keyframe_are_refused():
     no_home = re.sub(r"<keyframe>.*</keyframe>", "", MJX, flags=re.S)
     with pytest.raises(ValueError, match=r"floating base but no 'home' keyframe.*start="):
-        envs.from_mjcf(no_home, go2.LAYOUT, go2.REWARD)
+        envs.from_mjcf(no_home, go2.LAYOUT, go2.REWARD, commands=go2.WALK)
     with pytest.raises(ValueError, match=r"puts joint 'FL_calf_joint' at 0, outside its range"):
         bad = '<key name="bad" qpos="0 0 0.27 1 0 0 0 0 0.9 0 0 0.9 -1.8 0 0.9 -1.8 0 0.9 -1.8"/>'
         keyed = MJX.replace("<keyframe>", f"<keyframe>{bad}")
-        envs.from_mjcf(keyed, go2.LAYOUT, go2.REWARD, keyframe="bad")
+        envs.from_mjcf(keyed, go2.LAYOUT, go2.REWARD, keyframe="bad", commands=go2.WALK)
     with pytest.raises(ValueError, match="no keyframe named 'crouch'; its keyframes: home"):
-        envs.from_mjcf(MJX, go2.LAYOUT, go2.REWARD, keyframe="crouch")
+        envs.from_mjcf(MJX, go2.LAYOUT, go2.REWARD, keyframe="crouch", commands=go2.WALK)
 
 
 def test_observations_come_from_the_hardwares_signals_only():
@@ -85,7 +85,7 @@ def test_observations_come_from_the_hardwares_signals_only():
 
 def test_privileged_signals_are_a_choice():
     spec = envs.from_mjcf(
-        go2.MODELS / "scene_mjx.xml", go2.LAYOUT, go2.REWARD,
+        go2.MODELS / "scene_mjx.xml", go2.LAYOUT, go2.REWARD, commands=go2.WALK,
         observation=envs.Observation(imu="imu", privileged=("height",)), substeps=10,
     )  # fmt: skip
     team = spec.build(seed=0)
@@ -122,7 +122,7 @@ def test_a_pd_layer_turns_targets_into_torques_on_the_torque_motor_model():
     column = team.wiring()["agents"][0]["action"][0]
     assert (column["kp"], column["kd"], column["target"]) == (50.0, 0.5, "FL_hip_joint")
     with pytest.raises(ValueError, match="torque motors: JointTargets needs kp and kd"):
-        envs.from_mjcf(go2.MODELS / "scene.xml", go2.LAYOUT, go2.REWARD,
+        envs.from_mjcf(go2.MODELS / "scene.xml", go2.LAYOUT, go2.REWARD, commands=go2.WALK,
                        actions=envs.JointTargets(0.5))  # fmt: skip
 
 
@@ -226,7 +226,9 @@ def test_a_model_without_a_camera_is_filmed_by_a_following_camera():
 def test_actuators_left_to_no_agent_are_named():
     with pytest.warns(envs.sources.UnusedActuators, match=r"leaves actuators \['RR_hip'"):
         layout = {**go2.LAYOUT, "RR": ["RR_thigh", "RR_calf"]}
-        envs.from_mjcf(go2.MODELS / "scene_mjx.xml", layout, go2.REWARD, substeps=10)
+        envs.from_mjcf(
+            go2.MODELS / "scene_mjx.xml", layout, go2.REWARD, commands=go2.WALK, substeps=10
+        )
 
 
 def test_mat_train_says_when_it_trains_more_steps_than_asked(tmp_path):
