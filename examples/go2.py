@@ -1,6 +1,6 @@
 """A real robot as a MAT SDK env: MuJoCo Menagerie's Unitree Go2, one agent per leg.
 
-    PYTHONPATH=examples mat train go2:walk --out runs/go2 ...   # the recipe: docs/REAL_ROBOTS.md
+    PYTHONPATH=examples mat train go2:walk --seeds 3 --steps 2000000 --out runs/go2  # its recipe
 
 Each leg is an agent that drives its hip (abduction), thigh and calf. Episodes start from the
 model's `home` keyframe; an action is a joint target around that pose; each agent observes
@@ -21,7 +21,7 @@ BSD-3-Clause license beside it); the full model with meshes works the same.
 from pathlib import Path
 
 from mat_sdk import envs
-from mat_sdk.envs import terms
+from mat_sdk.envs import legged, terms
 
 MODELS = Path(__file__).parent / "robots" / "unitree_go2"
 LEGS = ("FL", "FR", "RL", "RR")  # front left, front right, rear left, rear right
@@ -43,6 +43,7 @@ REWARD = [
 TERMINATE = [terms.Tilt(60.0), terms.IllegalContact(("base",))]
 WALK = terms.VelocityCommand(vx=(0.3, 1.0))  # forward at 0.3-1 m/s, straight
 CONTROL_HZ = 50
+WALK_RECIPE = legged.WALK.recipe  # 32 envs x 100 steps, lr 3e-4, 5 x 4 minibatches, ...
 
 
 def walk() -> envs.RobotSpec:
@@ -58,6 +59,7 @@ def walk() -> envs.RobotSpec:
         substeps=round(1 / CONTROL_HZ / 0.002),  # the model's 2 ms physics step
         episode_limit=1000,  # 20 s
         root_noise=(0.0, 0.05),
+        recipe=WALK_RECIPE,  # docs/REAL_ROBOTS.md section 6's PPO settings
     )
 
 
@@ -76,4 +78,5 @@ def walk_torque() -> envs.RobotSpec:
         substeps=round(1 / CONTROL_HZ / 0.002),
         episode_limit=1000,
         root_noise=(0.0, 0.05),
+        recipe=WALK_RECIPE,
     )
