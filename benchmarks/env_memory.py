@@ -35,8 +35,8 @@ def rss_mb():
 
 visual = {visual}
 if visual:  # compile as before the lean copies: every asset kept
-    original = model_task._compiled
-    model_task._compiled = lambda source, _visual: original(source, True)
+    original = model_task.compiled_model
+    model_task.compiled_model = lambda source, _visual: original(source, True)
 robot = LeggedRobot({model!r}, quadrupeds.GO2.layout, quadrupeds.GO2.feet, "imu", ("base",))
 spec = WALK.spec(robot)
 teams = [spec.build(seed=0)]

@@ -23,7 +23,7 @@ from typing import Any
 from mat_sdk.envs import terms
 from mat_sdk.envs.actuation import JointTargets
 from mat_sdk.envs.features import Observation
-from mat_sdk.envs.model_task import _compiled
+from mat_sdk.envs.model_task import compiled_model
 from mat_sdk.envs.recipe import TrainingRecipe
 from mat_sdk.envs.sources import RobotSpec, from_mjcf
 
@@ -73,7 +73,7 @@ class LeggedTask:
         model = os.fspath(robot.model)
         if not model.lstrip().startswith("<"):
             model = str(Path(model).resolve())
-        timestep = float(_compiled(model, visual=False).opt.timestep)
+        timestep = float(compiled_model(model, visual=False).opt.timestep)
         control_timestep = 1.0 / self.control_hz
         return from_mjcf(
             model,

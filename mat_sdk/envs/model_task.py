@@ -17,6 +17,7 @@ visual meshes cost hundreds of MB per copy on a Menagerie model and no physics r
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -57,7 +58,7 @@ class ModelEnvironment:
         """The compiled model, without visual assets unless `visual`; a path keeps its
         directory for included files and meshes. A process compiles a model once and
         gives each env copy its own copy of the compiled model."""
-        model = dm_mujoco.wrapper.MjModel(_copy(_compiled(self.model, self.visual)))
+        model = dm_mujoco.wrapper.MjModel(_copy(compiled_model(self.model, self.visual)))
         return dm_mujoco.Physics.from_model(model)
 
     def __call__(self, seed: int | None) -> control.Environment:
@@ -69,7 +70,7 @@ class ModelEnvironment:
 _COMPILED: dict[tuple[str, bool], mujoco.MjModel] = {}
 
 
-def _compiled(source: str, visual: bool) -> mujoco.MjModel:
+def compiled_model(source: str, visual: bool) -> mujoco.MjModel:
     """`source` (a path or XML) compiled once per process, without visual assets unless
     `visual`; ValueError with MuJoCo's first line when it cannot be."""
     key = (source, visual)
@@ -88,8 +89,6 @@ def _compiled(source: str, visual: bool) -> mujoco.MjModel:
 
 def _copy(model: mujoco.MjModel) -> mujoco.MjModel:
     """A copy of its own: randomization changes a copy's masses, friction and gains."""
-    import copy
-
     return copy.copy(model)
 
 
