@@ -58,8 +58,9 @@ class ModelEnvironment:
         """The compiled model, without visual assets unless `visual`; a path keeps its
         directory for included files and meshes. A process compiles a model once and
         gives each env copy its own copy of the compiled model."""
-        model = dm_mujoco.wrapper.MjModel(_copy(compiled_model(self.model, self.visual)))
-        return dm_mujoco.Physics.from_model(model)
+        # a copy of its own: randomization changes a copy's masses, friction and gains
+        model = copy.copy(compiled_model(self.model, self.visual))
+        return dm_mujoco.Physics.from_model(dm_mujoco.wrapper.MjModel(model))
 
     def __call__(self, seed: int | None) -> control.Environment:
         physics = self.physics()
@@ -85,11 +86,6 @@ def compiled_model(source: str, visual: bool) -> mujoco.MjModel:
             name = "the model XML" if xml else source
             raise ValueError(f"{name}: MuJoCo cannot load it as an MJCF model ({first})") from None
     return _COMPILED[key]
-
-
-def _copy(model: mujoco.MjModel) -> mujoco.MjModel:
-    """A copy of its own: randomization changes a copy's masses, friction and gains."""
-    return copy.copy(model)
 
 
 def start_pose(
@@ -236,14 +232,15 @@ class ModelTask(base.Task):
             recipe.terminate is not None and not callable(recipe.terminate)
         )
         self._step = None
+        self.robot_scale: terms.RobotScale | None = None  # the units of relative terms
         # this step's reward by term, weighted (and what the floor added: `reward_terms`)
         self.term_values = np.zeros(len(self.reward_terms))
         if uses_terms:
             trunk = Trunk(model)
-            scale = terms.RobotScale.of(model, self.start_qpos[trunk.qpos + 2])
+            self.robot_scale = terms.RobotScale.of(model, self.start_qpos[trunk.qpos + 2])
             self._step = terms.Step(
-                physics.data.ptr, model, trunk, self.command, self.action,
-                self.previous_action, physics.model.opt.timestep * recipe.substeps, scale,
+                physics.data.ptr, model, trunk, self.command, self.action, self.previous_action,
+                physics.model.opt.timestep * recipe.substeps, self.robot_scale,
             )  # fmt: skip
 
     # ---------------------------------------------------------------- episodes

@@ -201,8 +201,8 @@ class RobotTeam(ArrayTeam):
         self._targets = None  # actions as joint targets around the start pose
         if self.spec.actions is not None:
             start = getattr(self._task, "start_qpos", self._model.qpos0)
-            step = getattr(self._task, "_step", None)
-            moment = step.scale.torque if step is not None and step.scale else None
+            scale = getattr(self._task, "robot_scale", None)  # from_mjcf tasks with terms
+            moment = None if scale is None else scale.torque
             self._targets = target_map(
                 self._model, self._ctrl_index, start, self.spec.actions, moment
             )
