@@ -7,7 +7,8 @@ once, by the set, and given to every seed. On CPU a seed's update is compute-bou
 separate processes are the fast way to run many (BENCHMARKS.md). A failed seed is reported
 with its log; the others carry on, and running the same command again resumes what did not
 finish and skips what did. With `--ray` each seed is a Ray task instead (`ray_launcher`),
-retried from its checkpoint when its run or worker is killed.
+retried from its checkpoint when its run or worker is killed; its rollouts run in the task
+(with `--workers`, in env worker processes beside it), not on Ray actors of their own.
 """
 
 from __future__ import annotations
@@ -99,7 +100,15 @@ def train_seeds(
     settings tuned once here. -> the seeds that failed (the others finished)."""
     from mat_sdk.runs import tuned, with_task_recipe
 
-    request = with_task_recipe(request)
+    # a seed's rollouts run where its task runs: a nested Ray instance per seed would only
+    # add processes to the cores its task holds
+    request = with_task_recipe(
+        dataclasses.replace(
+            request,
+            options={**request.options, "ray": None},
+            given=[name for name in request.given if name != "ray"],
+        )
+    )
     out = Path(request.out)
     cores = usable_cores()
     workers = request.options.get("workers", 0)
