@@ -1,18 +1,24 @@
-"""The update settings a long run uses, measured on the machine it runs on (`mat train`).
+"""The rollout and update settings a long run uses, measured on the machine it runs on
+(`mat train`).
 
-Which update step is fastest depends on the CPU: update worker processes on idle cores,
-torch.compile of the loss, and flushing subnormal floats to zero each win on some machines
-and lose on others (BENCHMARKS.md). So before a long CPU run that sets none of them, the
-candidates are measured side by side (`compare`, interleaved rounds) on the run's own recipe
-and one rollout of its own env, in three rounds of choice: how many update workers (eager),
-then with torch.compile or not, then flushing subnormals or not. A candidate that costs more
-to start (a compile, a process) must beat the simpler one by `MARGIN`.
+Which settings are fastest depends on the CPU and the env: env worker processes pay when a
+step of the env costs more than the hand-off to a worker, acting through ONNX Runtime when
+the policy's batch is large, and update worker processes on idle cores, torch.compile of the
+loss and flushing subnormal floats to zero each win on some machines and lose on others
+(BENCHMARKS.md). So before a long CPU run that sets none of them, the candidates are measured
+side by side (`compare`, interleaved rounds) on the run's own env and recipe, in rounds of
+choice: env workers (none, or one per free core), then the acting backend, each timed over
+whole rollouts; then how many update workers (eager), with torch.compile or not, flushing
+subnormals or not, each timed over optimizer steps on one rollout's data. A candidate that
+costs more to start (a process, a compile) must beat the simpler one by `MARGIN`. Env and
+update workers may take the same free cores: the loop is synchronous, so the ones idle while
+the others work.
 
 The choice is printed and written to OUT/tuning.json, which a rerun of the same command
 reuses (so a resumed run, or a seed set's unfinished seeds, keep their settings); the
-checkpoint records it like any setting. Each twin updates a private copy of the policy, and
-the run itself starts from its seed afterwards, untouched: a tuned run equals a run given
-the chosen settings on the command line.
+checkpoint records it like any setting. Each candidate runs on a private copy of the trainer,
+and the run itself starts from its seed afterwards, untouched: a tuned run equals a run
+given the chosen settings on the command line.
 """
 
 from __future__ import annotations
@@ -33,7 +39,8 @@ from mat_sdk.normalization import ValueNorm
 from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
 
-TUNED = ("update_workers", "compile", "flush_denormal")
+ROLLOUT = ("workers", "rollout_backend")  # timed over rollouts
+TUNED = (*ROLLOUT, "update_workers", "compile", "flush_denormal")
 TUNE_FROM_STEPS = 1_000_000  # a run this long pays for a minute of compiling many times over
 MARGIN = 0.05  # a costlier candidate must be this much faster than the simpler one
 MAX_UPDATE_WORKERS = 2
@@ -94,10 +101,13 @@ def _label(settings: dict) -> str:
 class _Measurements:
     """The rounds of choice so far, each a table of its candidates."""
 
-    def __init__(self, trainer: Trainer, batch, minibatches):
-        self.trainer, self.batch, self.minibatches = trainer, batch, minibatches
+    def __init__(self):
         self.table: list[dict] = []
         self.twins: list[Trainer] = []
+
+    def update_on(self, trainer: Trainer, batch, minibatches) -> None:
+        """The trainer, one rollout's rows and their minibatches the update rounds time."""
+        self.trainer, self.batch, self.minibatches = trainer, batch, minibatches
 
     def race(self, candidates: list[dict], rounds: int) -> dict:
         """Measure the candidates side by side; the fastest, unless a simpler one (earlier
@@ -115,6 +125,11 @@ class _Measurements:
         per_epoch = compare(epochs, seconds=0.0, rounds=rounds)  # one epoch per round
         self.close()
         seconds = {label: epoch_s / len(self.minibatches) for label, epoch_s in per_epoch.items()}
+        return self.choose(candidates, seconds, "optimizer step")
+
+    def choose(self, candidates: list[dict], seconds: dict[str, float], per: str) -> dict:
+        """The fastest candidate, unless a simpler one (earlier in the list) is within
+        MARGIN of it; the round's figures join the table."""
         chosen = candidates[0]
         for settings in candidates:
             if seconds[_label(settings)] < (1 - MARGIN) * seconds[_label(chosen)]:
@@ -124,7 +139,8 @@ class _Measurements:
             {
                 "round": round_,
                 "candidate": label,
-                "ms / optimizer step": f"{value * 1e3:.2f}",
+                "ms": f"{value * 1e3:.2f}",
+                "per": per,
                 "vs fastest of the round": f"{value / fastest:.2f}x",
                 "chosen": "yes" if label == _label(chosen) else "",
             }
@@ -141,15 +157,18 @@ class _Measurements:
 def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tuple[dict, list[dict]]:
     """Choose `TUNED` settings for a run of `config` (Trainer options, `env` and `algo`
     included) on this machine; `fixed`: the ones the user set, kept as given; `free_cores`:
-    cores the run's update may use beyond its own. -> (the chosen settings, a table of every
-    candidate measured, round by round: each round's figures are comparable among
-    themselves)."""
+    cores the run's env and update workers may use beyond its own. -> (the chosen settings,
+    a table of every candidate measured, round by round: each round's figures are comparable
+    among themselves). A run on Ray keeps its rollout settings (its workers are Ray's)."""
     defaults = {name: getattr(TrainConfig, name) for name in TUNED}
+    if config.get("ray"):
+        fixed = {**fixed, **{name: config.get(name, defaults[name]) for name in ROLLOUT}}
     base = {**defaults, **fixed}
-    options = {k: v for k, v in config.items() if k not in ("env", "algo", *TUNED)}
-    options |= {"workers": 0, "ray": None}  # the measurement steps its envs here
-    trainer = Trainer(config["env"], config["algo"], **options)
-    measurements = None
+    options = {k: v for k, v in config.items() if k not in ("env", "algo", "ray", *TUNED)}
+    measurements = _Measurements()
+    base = _rollout_rounds(config, options, base, fixed, free_cores, measurements, rounds)
+    # the update is measured on one rollout collected here, whatever the run's rollout
+    trainer = Trainer(config["env"], config["algo"], **options, workers=0, ray=None)
     try:
         trainer.config.check_batching()  # as the run would refuse it, before any work
         batch = trainer.rollout().rows(trainer.config.advantage_std_floor)
@@ -157,7 +176,7 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
         size = rows // trainer.config.num_minibatches
         minibatches = [torch.arange(i * size, (i + 1) * size)
                        for i in range(trainer.config.num_minibatches)]  # fmt: skip
-        measurements = _Measurements(trainer, batch, minibatches)
+        measurements.update_on(trainer, batch, minibatches)
         chosen = base
         if "update_workers" not in fixed:
             most = min(MAX_UPDATE_WORKERS, free_cores, size - 1)
@@ -168,10 +187,48 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
                 chosen = measurements.race([chosen, {**chosen, name: not chosen[name]}], rounds)
         return {name: chosen[name] for name in TUNED if name not in fixed}, measurements.table
     finally:
-        if measurements is not None:
-            measurements.close()
+        measurements.close()
         trainer.close()
         torch.set_flush_denormal(False)  # as torch starts: the run sets its own
+
+
+def _rollout_rounds(
+    config: dict,
+    options: dict,
+    base: dict,
+    fixed: dict,
+    free_cores: int,
+    measurements: _Measurements,
+    rounds: int,
+) -> dict:
+    """`base` with the env workers (none, or one per free core) and then the acting backend
+    that collect the run's rollouts fastest, each candidate a trainer of its own."""
+    most = min(free_cores, options.get("num_envs", TrainConfig.num_envs) - 1)
+    races = []
+    if "workers" not in fixed and most > 0:
+        races.append(("workers", [0, most]))
+    if "rollout_backend" not in fixed:
+        races.append(("rollout_backend", ["torch", "onnx"]))
+    chosen = base
+    for name, values in races:
+        candidates = [{**chosen, name: value} for value in values]
+        trainers = []
+        try:
+            for settings in candidates:
+                trainers.append(
+                    Trainer(config["env"], config["algo"], **options, ray=None,
+                            **{k: settings[k] for k in ROLLOUT})
+                )  # fmt: skip
+            collects = {
+                _label(settings): trainer.collector.collect
+                for settings, trainer in zip(candidates, trainers, strict=True)
+            }
+            seconds = compare(collects, seconds=0.0, rounds=rounds)  # a rollout per round
+        finally:
+            for trainer in trainers:
+                trainer.close()
+        chosen = measurements.choose(candidates, seconds, "rollout")
+    return chosen
 
 
 def tuned_settings(
@@ -183,15 +240,16 @@ def tuned_settings(
     if path.exists():
         recorded = json.loads(path.read_text())["chosen"]
         chosen = {name: recorded[name] for name in TUNED if name in recorded and name not in fixed}
-        echo(f"update settings as measured before ({path}): {_label({**fixed, **chosen})}")
+        echo(f"settings as measured before ({path}): {_label({**fixed, **chosen})}")
         return chosen
     echo(
-        "measuring the update settings on this machine before a long run: update workers, "
-        "torch.compile, subnormal flushing (about a minute or two; --no-tune skips it)"
+        "measuring the rollout and update settings on this machine before a long run: env "
+        "workers, acting backend, update workers, torch.compile, subnormal flushing (about a "
+        "minute or two; --no-tune skips it)"
     )
     chosen, table = measure(config, fixed, free_cores)
     if table:
-        print_table(table, "update settings measured, round by round")
+        print_table(table, "rollout and update settings measured, round by round")
     else:  # e.g. only the update workers left open, and no core to give them
         echo("nothing left to measure here: no core is free for an update worker")
     echo(f"chosen: {_label({**fixed, **chosen})}")

@@ -18,7 +18,8 @@ TINY = [
 
 
 def _flags(chosen: dict) -> list[str]:
-    return ["--update-workers", str(chosen["update_workers"]),
+    return ["--workers", str(chosen["workers"]), "--update-workers", str(chosen["update_workers"]),
+            "--set", f"rollout_backend={chosen['rollout_backend']}",
             "--set", f"flush_denormal={json.dumps(chosen['flush_denormal'])}"]  # fmt: skip
 
 
@@ -37,13 +38,17 @@ def test_long_cpu_runs_tune_unless_told_and_the_given_settings_stay():
 @pytest.mark.slow
 def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
     run = mat("train", *TINY, "--tune", "--out", str(tmp_path / "tuned"))
-    assert "measuring the update settings" in run.stdout and "chosen: " in run.stdout
+    assert "measuring the rollout and update settings" in run.stdout and "chosen: " in run.stdout
     record = json.loads((tmp_path / "tuned" / TUNING_NAME).read_text())
     chosen = record["chosen"]
-    assert set(chosen) == {"update_workers", "flush_denormal"}  # compile was given
+    # compile was given
+    assert set(chosen) == {"workers", "rollout_backend", "update_workers", "flush_denormal"}
     assert record["fixed"] == {"compile": False}
-    rounds = {row["round"] for row in record["measured"]}  # workers (a core free), flushing
-    assert len(rounds) == (2 if usable_cores() > 1 else 1)
+    # env workers and update workers (where a core is free), acting backend, flushing
+    rounds = {row["round"] for row in record["measured"]}
+    assert len(rounds) == (4 if usable_cores() > 1 else 2)
+    per = {row["round"]: row["per"] for row in record["measured"]}
+    assert sorted(per.values()).count("rollout") == (2 if usable_cores() > 1 else 1)
     for round_ in rounds:  # one winner per round, among candidates measured side by side
         assert [row["chosen"] for row in record["measured"] if row["round"] == round_].count(
             "yes"
