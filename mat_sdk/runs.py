@@ -48,10 +48,14 @@ class RunRequest:
 
     def __post_init__(self):
         self.out = Path(self.out) if self.out is not None else self.default_out()
-        if self.eval_every is None:
-            self.eval_every = (
-                self.steps // EVALUATIONS_PER_RUN if self.steps >= EVAL_FROM_STEPS else 0
-            )
+
+    @property
+    def evaluation_interval(self) -> int:
+        """Env steps between the protocol's evaluations (0: none): as asked, else 20 per run
+        of EVAL_FROM_STEPS steps or more."""
+        if self.eval_every is not None:
+            return self.eval_every
+        return self.steps // EVALUATIONS_PER_RUN if self.steps >= EVAL_FROM_STEPS else 0
 
     def default_out(self) -> Path:
         seed = self.options.get("seed", 0)
@@ -84,14 +88,16 @@ class RunResult:
 def train(request: RunRequest, say: Say = print, progress_bar: bool = True) -> RunResult:
     """Start (or with `resume`, continue) the run in `request.out` and train it to
     `request.steps`; the directory is locked meanwhile (`files.RunLock`)."""
+    request = with_task_recipe(request)
     with files.RunLock(request.out):
         trainer = start(request, say)
         with trainer:
             evaluations = None
-            if request.eval_every:
-                evaluations = EvaluationLog(request.out, request.eval_every, request.eval_episodes)
+            every = request.evaluation_interval
+            if every:
+                evaluations = EvaluationLog(request.out, every, request.eval_episodes)
                 say(
-                    f"evaluating every {request.eval_every:,} steps on {request.eval_episodes} "
+                    f"evaluating every {every:,} steps on {request.eval_episodes} "
                     f"episodes into {evaluations.path} (--eval-every 0: off)"
                 )
             trainer.learn(request.steps, callback=evaluations, progress_bar=progress_bar)
@@ -116,7 +122,10 @@ def with_task_recipe(request: RunRequest) -> RunRequest:
         return request
     settings = {k: v for k, v in recipe.settings().items() if k not in request.given}
     tune = request.tune if request.tune is not None else recipe.tune
-    return dataclasses.replace(request, options={**request.options, **settings}, tune=tune)
+    every = request.eval_every if request.eval_every is not None else recipe.eval_every
+    return dataclasses.replace(
+        request, options={**request.options, **settings}, tune=tune, eval_every=every
+    )
 
 
 def start(request: RunRequest, say: Say = print) -> Trainer:

@@ -146,7 +146,9 @@ def test_the_task_recipe_is_what_mat_train_and_trainer_use_unless_overridden():
     chosen = with_task_recipe(request)
     assert chosen.options["num_envs"] == recipe["num_envs"]  # a CLI default gives way
     assert chosen.options["lr"] == 1e-3  # what the user chose does not
-    assert chosen.tune is False
+    assert chosen.tune is True and chosen.evaluation_interval == 0  # the task's way to run
+    given = with_task_recipe(RunRequest(["quadrupeds:a1"], eval_every=5000, tune=False))
+    assert given.tune is False and given.evaluation_interval == 5000
 
 
 TEXTURED = """

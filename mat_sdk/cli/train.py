@@ -112,7 +112,7 @@ TRAIN_OPTIONS = {
     type=click.IntRange(min=0),
     help="Evaluate every this many env steps into OUT/evaluations.json (marl-eval layout), "
     "keep the best policy (OUT/best.pt) and end with its absolute metric; 0: off  "
-    "[default: steps/20 for runs of 100,000 steps or more, else 0].",
+    "[default: the task's recipe's, else steps/20 for runs of 100,000 steps or more, else 0].",
 )
 @click.option(
     "--eval-episodes", default=10, show_default=True, type=click.IntRange(min=1),

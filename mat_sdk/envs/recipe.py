@@ -14,11 +14,15 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
+RUN_SETTINGS = ("tune", "eval_every")  # `mat train`'s, not the training config's
+
 
 @dataclass(frozen=True)
 class TrainingRecipe:
-    """PPO settings a task declares (None: the algorithm recipe's); `tune`: whether
-    `mat train` measures the update settings on the machine before a long run."""
+    """PPO settings a task declares (None: the algorithm recipe's); how `mat train` runs it:
+    `tune`, whether it measures the rollout and update settings on the machine first (None:
+    for runs of 1e6 steps or more); `eval_every`, the env steps between the protocol's
+    evaluations (0: none; None: 20 per run of 100,000 steps or more)."""
 
     num_envs: int | None = None
     rollout_length: int | None = None
@@ -31,11 +35,12 @@ class TrainingRecipe:
     gamma: float | None = None
     gae_lambda: float | None = None
     tune: bool | None = None
+    eval_every: int | None = None
 
     def settings(self) -> dict[str, Any]:
-        """The training options it sets (`TrainConfig` fields), without `tune`."""
+        """The training options it sets (`TrainConfig` fields): all but how the run goes."""
         return {
             f.name: getattr(self, f.name)
             for f in fields(self)
-            if f.name != "tune" and getattr(self, f.name) is not None
+            if f.name not in RUN_SETTINGS and getattr(self, f.name) is not None
         }
