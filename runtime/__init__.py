@@ -4,8 +4,9 @@
     policy = Policy.load("cheetah_onnx")
     actions = policy.act(obs)  # obs [n, obs_dim] -> actions [n, action_size]
 
-See `mat_runtime.policy` for the input rules and thread-safety, and `mat_runtime.loop` for a
-fixed-rate control loop with its tick statistics.
+See `mat_runtime.policy` for the input rules and thread-safety, `mat_runtime.loop` for a
+fixed-rate control loop with its tick statistics, and `mat_runtime.controller` for the safe
+state machine (damping -> stand -> policy) and guards a robot-side controller runs.
 """
 
 from mat_runtime import loop

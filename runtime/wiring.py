@@ -30,6 +30,7 @@ from mat_runtime.manifest import _fail, integer, real, string, strings
 
 CONTROL_TIMESTEP = (1e-5, 10.0)  # s: a controller ticks at 100 kHz at most, 0.1 Hz at least
 MAX_ACTUATORS = 100_000  # a ctrl index past it is no robot's
+MAX_COMMAND = 10.0  # m/s or rad/s: past it a velocity command is no robot's (as in training)
 
 
 def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> None:
@@ -76,6 +77,11 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
             low, high = column.get("low"), column.get("high")
             if low is not None and high is not None and low > high:
                 need(field, f"has low {low!r} > high {high!r}")
+            for key, problem in (("servo", "[kp, kd], two numbers >= 0"),
+                                 ("range", "[low, high], low <= high")):  # fmt: skip
+                pair = column.get(key)
+                if pair is not None and not _pair(pair, nonnegative=key == "servo"):
+                    need(f"{field}.{key}", f"must be {problem}, got {str(pair)[:80]}")
             if column.get("kp") is None and column.get("kd") is None:
                 continue
             for key in ("kp", "kd"):  # a torque motor: its PD layer, fully
@@ -88,6 +94,12 @@ def check_wiring(wiring: Any, obs_dim: int, action_size: int, where: str) -> Non
                 need(f"{field}.torque", f"must be [low, high], two finite numbers, got {torque!r}")
             if torque[0] > torque[1]:
                 need(f"{field}.torque", f"must have low <= high, got {torque!r}")
+    commands = wiring.get("commands", {})
+    if not isinstance(commands, dict) or not all(
+        isinstance(name, str) and _pair(span, limit=MAX_COMMAND) for name, span in commands.items()
+    ):
+        need("commands", f"must map names to [low, high] within +-{MAX_COMMAND:g}, got "
+                         f"{str(commands)[:80]}")  # fmt: skip
     observation = wiring.get("observation")
     if observation is None:
         return
@@ -159,6 +171,21 @@ class Wiring:
         self.gains = [
             (c["target"], c["kp"], c["kd"]) for _, _, c in driven if c.get("kp") is not None
         ]
+        # per driven column: the joint it targets (None: a raw actuator control), the servo's
+        # or PD layer's gains and the joint's range, where the bundle records them
+        self.targets: list[str | None] = [c.get("target") for _, _, c in driven]
+        self.servo: list[tuple[float, float] | None] = [
+            tuple(c["servo"]) if "servo" in c else (c["kp"], c["kd"]) if "kp" in c else None
+            for _, _, c in driven
+        ]
+        self.ranges: list[tuple[float, float] | None] = [
+            tuple(c["range"]) if "range" in c else None for _, _, c in driven
+        ]
+        self.start_targets = self._offset.copy()  # each column's target at action 0
+        self.command_ranges: dict[str, tuple[float, float]] = {
+            name: (float(low), float(high))
+            for name, (low, high) in wiring.get("commands", {}).items()
+        }
         observation = wiring.get("observation")
         self.has_observation = observation is not None
         if self.has_observation:
@@ -252,6 +279,18 @@ def _reading(value, name: str) -> np.ndarray:
     if array.dtype.kind not in "biuf":
         raise ValueError(f"{name} must be real numbers, got an array of {array.dtype}")
     return array.astype(np.float64)
+
+
+def _pair(value, nonnegative: bool = False, limit: float = np.inf) -> bool:
+    """Whether `value` is two finite numbers within +-limit: both >= 0 (`nonnegative`, a
+    servo's [kp, kd]), else [low, high] with low <= high."""
+    return (
+        isinstance(value, list)
+        and len(value) == 2
+        and not any(map(real, value))
+        and all(abs(v) <= limit for v in value)
+        and (min(value) >= 0 if nonnegative else value[0] <= value[1])
+    )
 
 
 def _bound(value, default: float) -> float:

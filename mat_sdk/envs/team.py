@@ -383,6 +383,9 @@ class RobotTeam(ArrayTeam):
           concatenation of the named signals and `constants` (0, 1, positions), at the
           ranges in `source`; `signals` names each signal's columns; `offset` (when present)
           holds the start pose under `joint_pos`; the name and columns of each feature;
+        - per joint-target column, the joint's range and, for a position servo, its gains
+          [kp, kd] (what a robot's motor driver must be given to act as the model did);
+        - the velocity commands' trained ranges, for a robot that takes them;
         - the control timestep, and where the observation normaliser is."""
         model = self._model
         drives = dict(zip(self._action_driven.tolist(), range(len(self._ctrl_index)), strict=True))
@@ -414,12 +417,16 @@ class RobotTeam(ArrayTeam):
         if self._offset is not None:
             observation["offset"] = self._offset.tolist()
             observation["signals"] = {signal.name: signal.labels for signal in self._signals}
-        return {
+        wiring = {
             "control_timestep": float(self.control_timestep),
             "physics_timestep": float(model.opt.timestep),
             "agents": agents,
             "observation": observation,
         }
+        commands = getattr(getattr(self._task, "recipe", None), "commands", None)
+        if commands is not None:  # the ranges the policy was trained on, for a controller
+            wiring["commands"] = {name: list(getattr(commands, name)) for name in commands.names}
+        return wiring
 
     def _action_column(self, k: int) -> dict:
         """The wiring of driven actuator k (`wiring`)."""
@@ -440,7 +447,15 @@ class RobotTeam(ArrayTeam):
         low, high = (
             float(v) if np.isfinite(v) else None for v in (targets.low[k], targets.high[k])
         )
-        return {**column, "low": low, "high": high}
+        column |= {"low": low, "high": high}
+        if self._model.actuator_biastype[ctrl] == mujoco.mjtBias.mjBIAS_AFFINE:
+            # a position servo: the gains the robot's motor driver must be given for it
+            kp, kd = self._model.actuator_gainprm[ctrl, 0], -self._model.actuator_biasprm[ctrl, 2]
+            column["servo"] = [float(kp), float(kd)]
+        joint = int(self._model.actuator_trnid[ctrl, 0])
+        if self._model.jnt_limited[joint]:
+            column["range"] = [float(v) for v in self._model.jnt_range[joint]]
+        return column
 
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
