@@ -94,6 +94,9 @@ class Episodes:
     speeds: list[float]
     # a reward built from named terms: each term's mean per step over these episodes
     terms: dict[str, float] = field(default_factory=dict)
+    # a floating base's mean (vx, vy, yaw rate) per episode after its first second, in its
+    # heading's frame (`ArrayTeam.tracking`; NaN otherwise)
+    tracking: list[list[float]] = field(default_factory=list)
 
     def breakdown(self) -> str:
         """Each reward term's mean per step and its share of all terms' magnitude (penalties
@@ -192,6 +195,7 @@ def evaluate_episodes(
         check_fits(loaded.policy.cfg, vec, env_id)
         obs = vec.reset(seed=seed)
         returns, travel = np.full(episodes, np.nan), np.full(episodes, np.nan)
+        tracking = np.full((episodes, 3), np.nan)
         term_sums, term_steps = np.zeros(len(vec.reward_terms)), 0
         lengths, ended = np.zeros(episodes, dtype=np.int64), np.zeros(episodes, dtype=bool)
         frames, recorded = [], 0
@@ -216,12 +220,16 @@ def evaluate_episodes(
             returns[first] = info["episode_return"][first]
             lengths[first], ended[first] = info["episode_length"][first], terminated[first]
             travel[first] = info["episode_travel"][first]
+            tracking[first] = info["episode_tracking"][first]
         timestep = vec.control_timestep
     if video:
         write_video(frames, video, fps=round(1 / (recorder.control_timestep * stride)))
     speeds = travel / np.maximum(lengths * timestep, 1e-9)
     terms = dict(zip(vec.reward_terms, (term_sums / max(term_steps, 1)).tolist(), strict=True))
-    return Episodes(returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist(), terms)
+    return Episodes(
+        returns.tolist(), lengths.tolist(), ended.tolist(), speeds.tolist(), terms,
+        tracking.tolist(),
+    )  # fmt: skip
 
 
 def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Path:

@@ -276,3 +276,44 @@ def test_a_video_is_rendered_at_its_frame_rate_from_a_copy_with_the_visual_asset
         loaded = trainer._as_loaded()
         evaluate_episodes(loaded, 1, video=tmp_path / "run.gif")
     assert len(imageio.mimread(tmp_path / "run.gif")) == 10
+
+
+def test_tracking_reports_the_bases_velocity_in_its_heading_frame_after_the_first_second():
+    """A Go2 turned to face +y and carried at 0.4 m/s along +y (forward for it) and 0.2 m/s
+    along -x (its left) while yawing at 0.5 rad/s: (0.4, 0.2, 0.5)."""
+    team = envs.make_team("quadrupeds:go2", seed=0)
+    team.reset(seed=0)
+    physics = team.physics
+    base = team._base
+    data = physics.data.ptr
+    quarter = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])  # 90 degrees of yaw
+    assert np.isnan(team.tracking()).all()  # nothing measured in the first second
+    for _ in range(60):
+        data.qpos[base.qpos + 3 : base.qpos + 7] = quarter
+        data.qpos[base.qpos + 2] = 0.3
+        data.qvel[base.qvel : base.qvel + 6] = [-0.2, 0.4, 0.0, 0.0, 0.0, 0.5]
+        mujoco.mj_forward(physics.model.ptr, data)
+        team._track()
+    np.testing.assert_allclose(team.tracking(), [0.4, 0.2, 0.5], atol=1e-9)
+
+
+def test_mat_eval_grid_reports_tracking_per_command_and_plots_it(tmp_path):
+    from click.testing import CliRunner
+
+    from mat_sdk.cli import main
+    from mat_sdk.tracking import JOYSTICK_GRID
+
+    with Trainer("quadrupeds:go2", **TINY) as trainer:
+        path = trainer.save(tmp_path / "go2.pt")
+    plot = tmp_path / "tracking.png"
+    args = ["eval", str(path), "--grid", "--episodes", "1", "--plot", str(plot),
+            "--env-option", "episode_limit=60", "--trust-env-code"]  # fmt: skip
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    rows = [line for line in result.output.splitlines() if re.match(r"\| -?\d", line)]
+    assert len(rows) == len(JOYSTICK_GRID) and rows[0].startswith("| 0, 0, 0 |")
+    assert "mean absolute error:" in result.output and plot.stat().st_size > 0
+    both = CliRunner().invoke(main, [*args, "--sweep", "payload=0,1"])
+    assert both.exit_code == 2 and "--sweep and --grid are two reports" in both.output
+    commanded = CliRunner().invoke(main, [*args, "--env-option", "command=[1,0,0]"])
+    assert commanded.exit_code == 2 and "--grid sets the command itself" in commanded.output

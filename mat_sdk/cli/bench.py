@@ -102,6 +102,24 @@ def bench_scaling(env_id: str, updates: int, workers: str, settings: tuple[str, 
     )
 
 
+@bench.command("loop")
+@click.option("--env", "env_id", default="go2:walk", show_default=True)
+@click.option("--updates", default=3, show_default=True, help="Updates per variant and round.")
+@click.option("--rounds", default=3, show_default=True, help="Interleaved rounds.")
+@user_errors
+def bench_loop(env_id: str, updates: int, rounds: int) -> None:
+    """The training loop's levers one by one (env worker, ONNX acting, update worker,
+    torch.compile): rollout, waiting, update and env-steps/s per update, side by side.
+
+    
+    Example (the Go2 needs examples/ on the path):
+      PYTHONPATH=examples mat bench loop --env go2:walk --updates 3 --rounds 3
+    """
+    from mat_sdk.bench.loop import main as run
+
+    run(env_id, updates=updates, rounds=rounds)
+
+
 @bench.command("train")
 @click.option("--env", "env_id", default="cheetah-6x1", show_default=True)
 @click.option("--device", default="cpu", show_default=True)

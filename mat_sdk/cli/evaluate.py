@@ -29,12 +29,21 @@ from mat_sdk.cli.common import fault_option, parse_faults, parse_settings, trust
     help="Evaluate at each value of one randomization factor, the rest nominal: "
     "VALUES is low:high:count or a list, e.g. friction=0.4:1.2:5, payload=0,1,2, latency=0,1,2.",
 )  # fmt: skip
-@click.option("--plot", type=click.Path(dir_okay=False), help="With --sweep: plot it to FILE.png.")
+@click.option(
+    "--grid", is_flag=True,
+    help="A legged robot's tracking report: --episodes at each command of a joystick's grid "
+    "(vx, vy, yaw rate alone, standing, combined); per command the velocity measured in the "
+    "heading frame, the error, falls.",
+)  # fmt: skip
+@click.option(
+    "--plot", type=click.Path(dir_okay=False),
+    help="With --sweep or --grid: plot it to FILE.png.",
+)  # fmt: skip
 @trust_option()
 @user_errors
 def evaluate(
-    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, plot,
-    trust_env_code,
+    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, grid,
+    plot, trust_env_code,
 ) -> None:  # fmt: skip
     """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default),
     episodes that ended early (a robot's fall), and a floating-base robot's forward speed.
@@ -49,12 +58,19 @@ def evaluate(
       mat eval runs/cheetah/checkpoint.pt --episodes 5 --fault bfoot=zero --video run.mp4
       mat eval runs/go2/checkpoint.pt --env-option 'command=[0.7,0,0]' --trust-env-code
       mat eval runs/go2/checkpoint.pt --sweep friction=0.4:1.2:5 --plot friction.png
+      mat eval runs/go2/checkpoint.pt --grid --episodes 5 --plot tracking.png --trust-env-code
     """
     from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
 
     loaded = CheckpointPolicy.from_checkpoint(checkpoint)
-    if plot and not sweep:
-        raise click.UsageError("--plot draws a sweep: give --sweep FACTOR=VALUES too")
+    if plot and not (sweep or grid):
+        raise click.UsageError("--plot draws a sweep or a grid: give --sweep or --grid too")
+    if sweep and grid:
+        raise click.UsageError("--sweep and --grid are two reports: give one")
+    if grid:
+        _grid(loaded, plot, episodes, seed, trust_env_code, env_id, faults, stochastic, video,
+              env_options)  # fmt: skip
+        return
     if sweep:
         _sweep(loaded, sweep, plot, episodes, seed, trust_env_code, env_id, faults, stochastic,
                video, env_options)  # fmt: skip
@@ -95,3 +111,19 @@ def _sweep(loaded, sweep, plot, episodes, seed, trust, env_id, faults, stochasti
     click.echo(robustness.table(points, factor))
     if plot:
         click.echo(f"plot: {robustness.plot({'policy': [points]}, factor, plot)}")
+
+
+def _grid(loaded, plot, episodes, seed, trust, env_id, faults, stochastic, video, options):
+    from mat_sdk import tracking
+
+    for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
+                        (video, "--video")):  # fmt: skip
+        if given:
+            raise click.UsageError(f"--grid evaluates the checkpoint's own robot; drop {name}")
+    settings = parse_settings(options, param_hint="--env-option")
+    if "command" in settings:
+        raise click.UsageError("--grid sets the command itself, one per row; drop command=")
+    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, trust, **settings)
+    click.echo(tracking.table(rows))
+    if plot:
+        click.echo(f"plot: {tracking.plot(rows, plot)}")

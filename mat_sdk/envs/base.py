@@ -150,6 +150,10 @@ def invalid_action(
     return tuple(int(i) for i in np.argwhere(~valid)[0]), problem
 
 
+# tracking reports skip an episode's first second: the start from standing still
+SETTLE_SECONDS = 1.0
+
+
 class PhysicsDiverged(RuntimeWarning):
     """The simulation blew up (MuJoCo's unstable-acceleration reset, or NaN/inf state): the
     episode was truncated there, with reward 0 and non-finite observations zeroed."""
@@ -279,6 +283,12 @@ class ArrayTeam:
         """How far a robot with a floating base moved forward in this episode (m, along its
         start heading); NaN for other envs."""
         return math.nan
+
+    def tracking(self) -> np.ndarray:
+        """A floating base's mean velocity in this episode after its first `SETTLE_SECONDS`,
+        in its heading's frame, as a velocity command names it: (vx, vy in m/s, yaw rate in
+        rad/s); NaN for other envs."""
+        return np.full(3, math.nan)
 
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
         """An RGB frame `[height, width, 3]`; the physics envs override this."""

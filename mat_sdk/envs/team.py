@@ -29,6 +29,7 @@ import numpy as np
 from mat_sdk.envs.actuation import target_map, weaken
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
+    SETTLE_SECONDS,
     ArrayTeam,
     check_faults,
     checked_episode_limit,
@@ -135,6 +136,8 @@ class RobotTeam(ArrayTeam):
         except ValueError:
             self._base = None
         self._start = self._base_position()
+        self._tracked = np.zeros(4)  # sums of vx, vy, yaw rate and their count (`tracking`)
+        self._settle_steps = round(SETTLE_SECONDS / self.control_timestep)
 
     # ---------------------------------------------------------------- set-up
     def joint_names(self, agent: int) -> list[str]:
@@ -471,6 +474,7 @@ class RobotTeam(ArrayTeam):
                 randomizer.perturb_start(random)
         self._steps = 0
         self._start = self._base_position()
+        self._tracked[:] = 0.0
         return self._sensed()
 
     def _base_position(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -489,6 +493,20 @@ class RobotTeam(ArrayTeam):
             return math.nan
         position, heading = self._start
         return float((self._data.qpos[self._base.qpos : self._base.qpos + 2] - position) @ heading)
+
+    def tracking(self) -> np.ndarray:
+        count = self._tracked[3]
+        return self._tracked[:3] / count if count else np.full(3, math.nan)
+
+    def _track(self) -> None:
+        """Add this step's velocity in the heading's frame to `tracking`'s sums."""
+        base, data = self._base, self._data
+        rotation = data.xmat[base.body].reshape(3, 3)
+        hx, hy = rotation[0, 0], rotation[1, 0]
+        norm = max(math.hypot(hx, hy), 1e-9)
+        vx, vy = data.qvel[base.qvel : base.qvel + 2]
+        yaw_rate = rotation[2] @ data.qvel[base.qvel + 3 : base.qvel + 6]
+        self._tracked += ((vx * hx + vy * hy) / norm, (vy * hx - vx * hy) / norm, yaw_rate, 1.0)
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
@@ -515,6 +533,8 @@ class RobotTeam(ArrayTeam):
                 self._data.ctrl[self._ctrl_index] = self._targets.torques(self._data, targets)
                 self._physics_step(1, first=substep == 0, last=substep == self.substeps - 1)
         self._steps += 1
+        if self._base is not None and self._steps > self._settle_steps:
+            self._track()
         obs, reward = self._sensed(), float(self._reward(self.physics))
         step, substep = self.control_timestep, self._model.opt.timestep
         if diverged(self._data, time_before, step, substep, reward):

@@ -32,6 +32,7 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "episode_return": ((), np.float64),
     "episode_length": ((), np.int64),
     "episode_travel": ((), np.float64),  # a floating base's forward distance (else NaN)
+    "episode_tracking": (("track",), np.float64),  # its mean vx, vy, yaw rate (`tracking`)
     "reward_terms": (("terms",), np.float64),  # the step's reward by named term (`reward_terms`)
     # teams with masks (`ArrayTeam.masks`): who is in the episode, and what each may choose
     "active": (("n",), np.float32),
@@ -94,6 +95,7 @@ class _EnvSlice:
                 b.final_obs[i] = obs
                 b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
                 b.episode_travel[i] = team.travelled()
+                b.episode_tracking[i] = team.tracking()
                 self._returns[k], self._lengths[k] = 0.0, 0
                 obs = team.reset()
                 b.active[i] = 1.0  # a new episode: nobody has left it
@@ -187,6 +189,7 @@ class VecTeam:
             "act": self.action_width,
             "choices": self.action_size,
             "terms": len(self.reward_terms),
+            "track": 3,
         }
         self._buffers = _Buffers(sizes, num_envs, shared=workers > 0)
         seeds = [seed + i for i in range(num_envs)]
@@ -236,6 +239,7 @@ class VecTeam:
             "episode_return": b.episode_return.copy(),
             "episode_length": b.episode_length.copy(),
             "episode_travel": b.episode_travel.copy(),
+            "episode_tracking": b.episode_tracking.copy(),
             "reward_terms": b.reward_terms.copy(),
             "done": done,
         }
