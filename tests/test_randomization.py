@@ -301,7 +301,7 @@ def test_mat_eval_sweeps_one_factor_and_plots_it(go2_checkpoint, tmp_path):
         (["--sweep", "frction=0.4,1"], "cannot sweep 'frction'; sweepable factors: friction"),
         (["--sweep", "latency"], "'latency': use FACTOR=VALUES"),
         (["--sweep", "payload=0:2"], "sweep values '0:2': give low:high:count"),
-        (["--plot", "x.png"], "--plot draws a sweep: give --sweep FACTOR=VALUES too"),
+        (["--plot", "x.png"], "--plot draws a sweep or a grid: give --sweep or --grid too"),
         (["--sweep", "payload=0,1", "--fault", "FR_hip_joint=zero"], "drop --fault"),
     ],
 )
