@@ -8,7 +8,8 @@ robot's heading frame (`mat eval --grid`).
 
 Velocities are each episode's mean after its first second (the start from standing still;
 `envs.base.SETTLE_SECONDS`), averaged over the episodes; an episode that ends early (a fall)
-counts with what it measured before it ended.
+counts with what it measured before it ended, and a command whose every episode ended within
+its first second has no measurement (NaN), only its falls.
 """
 
 from __future__ import annotations
@@ -68,18 +69,12 @@ def track(
             loaded, episodes, seed=seed, trust_env_code=trust_env_code,
             command=[float(v) for v in command], **options,
         )  # fmt: skip
+        if np.isnan(result.speeds).all():
+            raise ValueError("--grid measures a floating-base robot's velocity; this env has none")
         measured = np.array(result.tracking, dtype=np.float64)
-        if np.isnan(measured).all():
-            raise ValueError(
-                "--grid measures a floating-base robot's velocity; this env has none (or its "
-                "episodes end within their first second)"
-            )
-        rows.append(
-            Tracked(
-                tuple(float(v) for v in command), np.nanmean(measured, axis=0),
-                sum(result.ended), episodes,
-            )
-        )  # fmt: skip
+        kept = measured[~np.isnan(measured).any(axis=1)]  # all fell within the first second: NaN
+        mean = kept.mean(axis=0) if len(kept) else np.full(3, np.nan)
+        rows.append(Tracked(tuple(float(v) for v in command), mean, sum(result.ended), episodes))
     return rows
 
 
@@ -88,9 +83,9 @@ def summary(rows: Sequence[Tracked]) -> dict[str, float]:
     episodes that fell, and the speed measured at a zero command (NaN if none is in it)."""
     errors = np.array([row.error for row in rows])
     standing = [row for row in rows if not any(row.command)]
-    return {
-        "linear error (m/s)": float(errors[:, :2].mean()),
-        "yaw-rate error (rad/s)": float(errors[:, 2].mean()),
+    return {  # over the commands where an episode lasted past its first second
+        "linear error (m/s)": float(np.nanmean(errors[:, :2])),
+        "yaw-rate error (rad/s)": float(np.nanmean(errors[:, 2])),
         "falls": sum(row.falls for row in rows) / max(1, sum(row.episodes for row in rows)),
         "speed at zero command (m/s)": float(np.hypot(*standing[0].measured[:2]))
         if standing
@@ -112,9 +107,11 @@ def table(rows: Sequence[Tracked]) -> str:
         falls = f"{row.falls} / {row.episodes}"
         lines.append(f"| {command} | {vx:.3f} | {vy:.3f} | {yaw:.3f} | {error} | {falls} |")
     figures = summary(rows)
+    measured = sum(not np.isnan(row.measured).any() for row in rows)
     lines.append("")
     lines.append(
-        f"mean absolute error: {figures['linear error (m/s)']:.3f} m/s linear, "
+        f"mean absolute error over the {measured} of {len(rows)} commands measured (the others "
+        f"fell within their first second): {figures['linear error (m/s)']:.3f} m/s linear, "
         f"{figures['yaw-rate error (rad/s)']:.3f} rad/s yaw; falls {figures['falls']:.0%} of the "
         f"episodes; at a zero command {figures['speed at zero command (m/s)']:.3f} m/s"
     )
