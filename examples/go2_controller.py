@@ -1,20 +1,26 @@
-"""The Go2's controller: the bundle acts from what the robot's hardware gives, nothing more.
+"""The Go2's controller: the bundle acts from what the robot's hardware gives, nothing more,
+behind the controller kit's safety states.
 
     PYTHONPATH=examples mat train go2:walk ... --out runs/go2          # docs/REAL_ROBOTS.md
     mat export runs/go2/checkpoint.pt -o runs/go2/onnx --trust-env-code
     python examples/go2_controller.py runs/go2/onnx --command 0.7 0 0 --seconds 20
 
 Every tick (50 Hz) it reads the joint encoders (angle and velocity of the 12 joints, by
-name), the IMU (orientation and angular velocity) and the four foot contact switches; the
-bundle's wiring turns these, the operator's velocity command and the previous action into
-every leg's observation; the policy acts; the wiring turns the actions into joint targets
-for the motors. Only `mat_runtime` (numpy + onnxruntime) runs the policy: torch is blocked,
-and nothing of the training SDK is imported.
+name), the IMU (orientation and angular velocity) and the four foot contact switches, and
+gives them to the kit (`mat_runtime.controller`, docs/DEPLOYMENT.md): it stands the robot up
+from its measured pose, hands over to the policy, clamps the operator's command to the
+trained ranges, and makes every motor soft on a fault (a tilt past 45 degrees, a joint too
+fast or at its range's end, a stale or NaN reading). Each tick's command is per motor a
+joint target and the gains kp, kd, as the Go2's low-level command message carries them. Only
+`mat_runtime` (numpy + onnxruntime) runs the policy: torch is blocked, and nothing of the
+training SDK is imported.
 
-The "robot" here is MuJoCo stepping the model (`SimulatedGo2`), so the loop can be run and
-measured anywhere; on the real Go2, `read` gets the same numbers from its low-level state
-message (motor q, dq; IMU quaternion, gyroscope; foot force > threshold) and `write` sends
-the targets with the motors' own position gains.
+The "robot" here is MuJoCo stepping the model (`SimulatedGo2`), whose motor driver takes each
+tick's targets and gains, so the loop can be run and measured anywhere; on the real Go2,
+`read` gets the same numbers from its low-level state message (motor q, dq; IMU quaternion,
+gyroscope; foot force > threshold) and `write` sends q, dq, kp, kd, tau per motor. A fault
+here counts as a fall: the simulation puts the robot back on its feet and the operator
+starts the kit again.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import mujoco
 import numpy as np
 
 from mat_runtime import BundleError, Policy, loop
+from mat_runtime.controller import Controller, Mode, MotorCommand
 
 MODEL = Path(__file__).parent / "robots" / "unitree_go2" / "scene_mjx.xml"
 
@@ -47,6 +54,10 @@ class SimulatedGo2:
         self.feet = np.array([self.model.geom(name).id for name in feet])
         self.imu = self.model.site("imu").id
         self.base = self.model.body("base").id
+        # each joint's actuator, in the encoders' order: the motors `write` drives
+        self.motors = np.array(
+            [np.flatnonzero(self.model.actuator_trnid[:, 0] == j)[0] for j in ids]
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -70,14 +81,14 @@ class SimulatedGo2:
             "contacts": touching.astype(np.float64),
         }
 
-    def write(self, actuators: np.ndarray, targets: np.ndarray) -> None:
-        """Send joint targets to the motors; the simulation then runs one control period."""
-        self.data.ctrl[actuators] = targets
+    def write(self, motors: MotorCommand) -> None:
+        """Send each motor (in the encoders' order) its target and gains, as the motor driver
+        takes them; the simulation then runs one control period."""
+        self.model.actuator_gainprm[self.motors, 0] = motors.kp
+        self.model.actuator_biasprm[self.motors, 1] = -motors.kp
+        self.model.actuator_biasprm[self.motors, 2] = -motors.kd
+        self.data.ctrl[self.motors] = motors.q
         mujoco.mj_step(self.model, self.data, self.substeps)
-
-    def fallen(self) -> bool:
-        up = self.data.xmat[self.base].reshape(3, 3)[2, 2]
-        return bool(up < np.cos(np.radians(60)) or self.data.qpos[2] < 0.12)
 
 
 def main() -> None:
@@ -116,24 +127,23 @@ def main() -> None:
             f"{args.bundle} drives actuator {wiring.ctrl_index.max()}, and {args.model.name} has "
             f"{robot.model.nu}"
         )
-    n = len(wiring.agents)
+    try:
+        kit = Controller(policy, log=print)
+    except BundleError as error:
+        parser.error(str(error))
     command = np.array(args.command)
-    actions = np.zeros((n, policy.action_size), np.float32)
-    last_action = np.zeros(n * policy.action_size)  # each leg's previous action, in leg order
-    state = {"falls": 0}
+    state = {"falls": 0, "motors": None}
+    kit.start()
 
     def act() -> None:
-        obs = wiring.observe(**robot.read(), command=command, last_action=last_action)
-        policy.act(obs, out=actions)
+        state["motors"] = kit.tick(robot.read(), robot.data.time, command)
 
     def step() -> None:
-        index, targets = wiring.commands(actions)
-        last_action[:] = np.clip(actions, -1, 1).reshape(-1)
-        robot.write(index, targets)
-        if robot.fallen():
+        robot.write(state["motors"])
+        if kit.mode is Mode.DAMPING:  # a guard tripped: a fall, or about to be one
             state["falls"] += 1
             robot.reset()
-            last_action[:] = 0.0
+            kit.start()
 
     ticks = loop.run(act, step, 1 / wiring.control_timestep, args.seconds, warmup=0.0)
     travelled = float((robot.data.xpos[robot.base] - robot.start)[0])
@@ -141,7 +151,7 @@ def main() -> None:
     print(f"{policy}\n{ticks.summary()}")
     print(
         f"command {args.command}: falls {state['falls']}; {travelled:.2f} m forward in the last "
-        f"{robot.data.time:.1f} s ({speed:.2f} m/s)"
+        f"{robot.data.time:.1f} s, its stand-up included ({speed:.2f} m/s)"
     )
     assert "torch" not in {m for m, module in sys.modules.items() if module}
 

@@ -21,7 +21,7 @@ import go2  # noqa: E402  (examples/, put on the path just above)
 import go2_controller  # noqa: E402
 
 from mat_runtime import BundleError, InputError, Policy  # noqa: E402
-from mat_runtime.controller import Controller, Mode, MotorCommand, Safety  # noqa: E402
+from mat_runtime.controller import Controller, Mode, Safety  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -36,23 +36,13 @@ def bundle(tmp_path_factory):
     return root / "onnx"
 
 
-class DrivenGo2(go2_controller.SimulatedGo2):
-    """The simulated Go2 with a motor driver: each tick's kp, kd become its servos' gains."""
-
-    def __init__(self, policy: Policy):
-        wiring = policy.wiring
-        super().__init__(
-            go2.MODELS / "scene_mjx.xml", wiring.signals["joint_pos"],
-            wiring.signals["contacts"], wiring.control_timestep,
-        )  # fmt: skip
-
-    def apply(self, motors: MotorCommand, order: list[str]) -> None:
-        for k, joint in enumerate(order):
-            a = self.model.actuator(joint.removesuffix("_joint")).id
-            self.model.actuator_gainprm[a, 0] = motors.kp[k]
-            self.model.actuator_biasprm[a, 1:3] = -motors.kp[k], -motors.kd[k]
-            self.data.ctrl[a] = motors.q[k]
-        mujoco.mj_step(self.model, self.data, self.substeps)
+def DrivenGo2(policy: Policy) -> go2_controller.SimulatedGo2:
+    """The example's simulated Go2, whose motor driver takes each tick's targets and gains."""
+    wiring = policy.wiring
+    return go2_controller.SimulatedGo2(
+        go2.MODELS / "scene_mjx.xml", wiring.signals["joint_pos"], wiring.signals["contacts"],
+        wiring.control_timestep,
+    )  # fmt: skip
 
 
 def _run(kit: Controller, robot: DrivenGo2, ticks: int, command=(0.5, 0.0, 0.0), **tampered):
@@ -63,7 +53,7 @@ def _run(kit: Controller, robot: DrivenGo2, ticks: int, command=(0.5, 0.0, 0.0),
         for name, change in tampered.items():
             reading[name] = change(reading[name])
         motor = kit.tick(reading, robot.data.time, command)
-        robot.apply(motor, kit.joints)
+        robot.write(motor)
         motors.append(motor)
     return motors
 
@@ -187,7 +177,7 @@ def test_motors_in_the_sdks_order_are_mapped_by_joint_name(bundle):
         other = theirs.tick(sdk, robot.data.time, (0.5, 0, 0))
         np.testing.assert_allclose(other.q, mine.q[permute], atol=1e-6)
         np.testing.assert_allclose(other.kp, mine.kp[permute])
-        robot.apply(mine, ours.joints)
+        robot.write(mine)
     assert ours.mode is theirs.mode is Mode.POLICY
     with pytest.raises(ValueError, match=r"motor_order .* unknown \['FL_knee'\]"):
         Controller(policy, motor_order=[*order[:-1], "FL_knee"])
