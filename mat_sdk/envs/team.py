@@ -501,12 +501,15 @@ class RobotTeam(ArrayTeam):
     def _track(self) -> None:
         """Add this step's velocity in the heading's frame to `tracking`'s sums."""
         base, data = self._base, self._data
-        rotation = data.xmat[base.body].reshape(3, 3)
-        hx, hy = rotation[0, 0], rotation[1, 0]
+        r = data.xmat[base.body].tolist()  # row-major 3 x 3; plain floats: a per-step cost
+        vx, vy, _, wx, wy, wz = data.qvel[base.qvel : base.qvel + 6].tolist()
+        hx, hy = r[0], r[3]  # the base's x axis, horizontal part
         norm = max(math.hypot(hx, hy), 1e-9)
-        vx, vy = data.qvel[base.qvel : base.qvel + 2]
-        yaw_rate = rotation[2] @ data.qvel[base.qvel + 3 : base.qvel + 6]
-        self._tracked += ((vx * hx + vy * hy) / norm, (vy * hx - vx * hy) / norm, yaw_rate, 1.0)
+        tracked = self._tracked
+        tracked[0] += (vx * hx + vy * hy) / norm
+        tracked[1] += (vy * hx - vx * hy) / norm
+        tracked[2] += r[6] * wx + r[7] * wy + r[8] * wz  # the world z of the body's rates
+        tracked[3] += 1.0
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
