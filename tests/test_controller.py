@@ -11,10 +11,8 @@ import shutil
 import mujoco
 import numpy as np
 import pytest
-from helpers import TINY
 
 from mat_sdk.recipes import with_examples
-from mat_sdk.trainer import Trainer
 
 with_examples()
 import go2  # noqa: E402  (examples/, put on the path just above)
@@ -22,18 +20,6 @@ import go2_controller  # noqa: E402
 
 from mat_runtime import BundleError, InputError, Policy  # noqa: E402
 from mat_runtime.controller import Controller, Mode, Safety  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
-    from mat_export import export
-
-    root = tmp_path_factory.mktemp("go2")
-    with Trainer("go2:walk", **{**TINY, "rollout_length": 20}) as trainer:
-        trainer.learn(40, progress_bar=False)
-        ckpt = trainer.save(root / "go2.pt")
-    export(ckpt, root / "onnx", agent_counts=(4,), trust_env_code=True)
-    return root / "onnx"
 
 
 def DrivenGo2(policy: Policy) -> go2_controller.SimulatedGo2:
@@ -65,8 +51,8 @@ def _lying(robot: DrivenGo2) -> None:
     mujoco.mj_forward(robot.model, robot.data)
 
 
-def test_it_stands_up_without_a_jump_then_walks(bundle):
-    policy = Policy.load(bundle)
+def test_it_stands_up_without_a_jump_then_walks(go2_bundle):
+    policy = Policy.load(go2_bundle)
     logged = []
     kit = Controller(policy, Safety(stand_seconds=1.0), log=logged.append)
     robot = DrivenGo2(policy)
@@ -102,8 +88,8 @@ def test_it_stands_up_without_a_jump_then_walks(bundle):
         ({"joint_pos": lambda q: q + np.eye(12)[2] * 3.0}, "of its range"),
     ],
 )  # fmt: skip
-def test_each_guard_ends_in_damping_in_the_tick_that_sees_it(bundle, tampered, reason):
-    policy = Policy.load(bundle)
+def test_each_guard_ends_in_damping_in_the_tick_that_sees_it(go2_bundle, tampered, reason):
+    policy = Policy.load(go2_bundle)
     kit = Controller(policy, Safety(stand_seconds=0.2))
     robot = DrivenGo2(policy)
     kit.start()
@@ -118,8 +104,8 @@ def test_each_guard_ends_in_damping_in_the_tick_that_sees_it(bundle, tampered, r
     assert kit.mode is Mode.DAMPING
 
 
-def test_stale_readings_late_ticks_and_the_operator_stop_end_in_damping(bundle):
-    policy = Policy.load(bundle)
+def test_stale_readings_late_ticks_and_the_operator_stop_end_in_damping(go2_bundle):
+    policy = Policy.load(go2_bundle)
     safety = Safety(stand_seconds=0.2, stale_ticks=4, late_ticks=3)
     kit = Controller(policy, safety)
     robot = DrivenGo2(policy)
@@ -148,8 +134,8 @@ def test_stale_readings_late_ticks_and_the_operator_stop_end_in_damping(bundle):
     assert kit.mode is Mode.DAMPING and kit.transitions[-1].reason == "operator stop"
 
 
-def test_commands_are_clamped_to_the_trained_ranges_at_a_limited_rate(bundle):
-    policy = Policy.load(bundle)
+def test_commands_are_clamped_to_the_trained_ranges_at_a_limited_rate(go2_bundle):
+    policy = Policy.load(go2_bundle)
     kit = Controller(policy, Safety(command_rate=2.0))
     low, high = kit.command_low, kit.command_high
     assert kit.command_names == ["vx", "vy", "yaw_rate"]
@@ -161,8 +147,8 @@ def test_commands_are_clamped_to_the_trained_ranges_at_a_limited_rate(bundle):
         kit.filtered_command([np.nan, 0, 0])
 
 
-def test_motors_in_the_sdks_order_are_mapped_by_joint_name(bundle):
-    policy = Policy.load(bundle)
+def test_motors_in_the_sdks_order_are_mapped_by_joint_name(go2_bundle):
+    policy = Policy.load(go2_bundle)
     ours = Controller(policy, Safety(stand_seconds=0.2))
     order = list(reversed(ours.joints))
     theirs = Controller(policy, Safety(stand_seconds=0.2), motor_order=order)
@@ -183,13 +169,13 @@ def test_motors_in_the_sdks_order_are_mapped_by_joint_name(bundle):
         Controller(policy, motor_order=[*order[:-1], "FL_knee"])
 
 
-def test_bad_limits_and_a_bundle_without_gains_are_refused_naming_them(bundle, tmp_path):
+def test_bad_limits_and_a_bundle_without_gains_are_refused_naming_them(go2_bundle, tmp_path):
     with pytest.raises(ValueError, match="Safety.tilt must be a finite number > 0"):
         Safety(tilt=0)
     with pytest.raises(ValueError, match="Safety.stale_ticks must be an integer >= 1"):
         Safety(stale_ticks=0.5)
     old = tmp_path / "old"
-    shutil.copytree(bundle, old)
+    shutil.copytree(go2_bundle, old)
     manifest = json.loads((old / "manifest.json").read_text())
     for agent in manifest["wiring"]["agents"]:
         for column in agent["action"]:

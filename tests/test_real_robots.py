@@ -161,24 +161,12 @@ def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):
             assert np.array_equal(value.numpy(), straight[name].numpy()), name
 
 
-@pytest.fixture(scope="module")
-def bundle(tmp_path_factory):
-    from mat_export import export
-
-    root = tmp_path_factory.mktemp("go2")
-    with Trainer("go2:walk", **{**TINY, "rollout_length": 20}) as trainer:
-        trainer.learn(40, progress_bar=False)
-        ckpt = trainer.save(root / "go2.pt")
-    export(ckpt, root / "onnx", agent_counts=(1, 4), trust_env_code=True)
-    return root / "onnx"
-
-
-def test_the_controller_builds_the_envs_observation_from_the_robots_sensors(bundle):
+def test_the_controller_builds_the_envs_observation_from_the_robots_sensors(go2_bundle):
     """The same state through two doors: the env's own observation, and the wiring fed with
     what the hardware reads (encoders, IMU, contacts), the command and the last action."""
     from mat_runtime import Policy
 
-    policy = Policy.load(bundle)
+    policy = Policy.load(go2_bundle)
     wiring = policy.wiring
     team = _team(seed=0, command=[0.5, 0.0, 0.2])
     robot = go2_controller.SimulatedGo2(
@@ -203,9 +191,9 @@ def test_the_controller_builds_the_envs_observation_from_the_robots_sensors(bund
         wiring.observe(joint_pos=np.zeros(12), joint_vel=np.zeros(12))
 
 
-def test_the_go2_controller_runs_without_torch(bundle):
+def test_the_go2_controller_runs_without_torch(go2_bundle):
     run = subprocess.run(
-        [sys.executable, str(REPO / "examples" / "go2_controller.py"), str(bundle),
+        [sys.executable, str(REPO / "examples" / "go2_controller.py"), str(go2_bundle),
          "--seconds", "1"],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
@@ -321,12 +309,14 @@ def test_a_weak_fault_outside_0_to_1_is_refused_naming_it(mode):
     ],
     ids=["joint", "contacts", "ctrl", "slow", "fast"],
 )
-def test_the_go2_controller_refuses_an_edited_bundle_in_one_line(bundle, tmp_path, edit, problem):
+def test_the_go2_controller_refuses_an_edited_bundle_in_one_line(
+    go2_bundle, tmp_path, edit, problem
+):
     import json
     import shutil
 
     edited = tmp_path / "onnx"
-    shutil.copytree(bundle, edited)
+    shutil.copytree(go2_bundle, edited)
     manifest = json.loads((edited / "manifest.json").read_text())
     edit(manifest["wiring"])
     (edited / "manifest.json").write_text(json.dumps(manifest))
