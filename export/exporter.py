@@ -39,7 +39,7 @@ from mat_export.target import check_target, staging
 from mat_sdk import checkpoint, envs, files
 from mat_sdk.control_graph import OPSET as DECODE_OPSET
 from mat_sdk.control_graph import build_decode
-from mat_sdk.model import MAT, ModelConfig, check_fits
+from mat_sdk.model import ModelConfig, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 
 OPSET = 20  # encoder.onnx and decoder_step.onnx; decode*.onnx: DECODE_OPSET (24, Attention)
@@ -98,7 +98,7 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
         float(value_scale.std),
     )
     bounds = (written["action"]["low"], written["action"]["high"])
-    specialised = [cfg.n_agents] if cfg.algo == "mat" else []
+    specialised = [cfg.n_agents] if cfg.algorithm.autoregressive else []
     for agents in [None, *specialised]:
         name = "decode.onnx" if agents is None else f"decode_n{agents}.onnx"
         decode = build_decode(policy, *folded, agents=agents, action_bounds=bounds)
@@ -185,11 +185,11 @@ def _export_graphs(policy, normalizer, value_scale, directory: Path) -> dict[str
     discrete = cfg.action_type == "discrete"
     head = ["logits"] if discrete else ["mean", "std"]
     mask = (
-        [torch.ones(batch, 1 if isinstance(policy, MAT) else n, cfg.action_size)]
+        [torch.ones(batch, 1 if cfg.algorithm.autoregressive else n, cfg.action_size)]
         if discrete
         else []
     )
-    if isinstance(policy, MAT):
+    if cfg.algorithm.autoregressive:
         head_dim, n_cache = cfg.n_embd // cfg.n_head, 4 * cfg.n_block
         past = [torch.randn(batch, cfg.n_head, 4, head_dim) for _ in range(n_cache)]
         names = cache_names(cfg.n_block)

@@ -64,7 +64,7 @@ class EncoderGraph(nn.Module):
 
     def forward(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         x = self.normalizer(obs)
-        if isinstance(self.policy, MAT):
+        if self.policy.cfg.algorithm.autoregressive:
             rep, values = self.policy.encoder(x)
         else:
             rep, values = x, self.policy.values(x)

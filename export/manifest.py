@@ -43,7 +43,7 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
         "format": FORMAT,
         "version": VERSION,
         "algo": cfg.algo,
-        "kind": "autoregressive" if cfg.algo == "mat" else "decentralised",
+        "kind": cfg.algorithm.bundle_kind,
         "obs_dim": cfg.obs_dim,
         "action": {
             "type": cfg.action_type,
@@ -70,7 +70,7 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
         "env_options": dict(train.get("env_options") or {}),
         "randomization": env.get("randomization"),  # null: trained without
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
-        if cfg.algo == "mat"
+        if cfg.algorithm.autoregressive
         else [],
         "checkpoint": {
             "sha256": sha256(Path(checkpoint_path)),

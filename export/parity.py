@@ -9,7 +9,6 @@ import torch
 
 from mat_export.graphs import cache_names
 from mat_runtime.step import decode_agents
-from mat_sdk.model import MAT
 
 PARITY_LIMIT = 1e-4
 AGENT_COUNTS = (1, 2, 6, 17, 64)
@@ -107,7 +106,7 @@ def torch_decode(policy, x: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Te
         return params + policy.std() * agent_noise
 
     with torch.no_grad():
-        if not isinstance(policy, MAT):
+        if not policy.cfg.algorithm.autoregressive:
             params = policy.actor(x)
             return sample(None, params), params
         return policy.decode(policy.encoder(x)[0], sample)
@@ -120,7 +119,7 @@ def decode_with_ort(policy, step, rep: np.ndarray, forced_actions: np.ndarray | 
     discrete = cfg.action_type == "discrete"
     batch, n = rep.shape[:2]
     available = np.ones((batch, n, cfg.action_size), np.float32) if discrete else None
-    if not isinstance(policy, MAT):
+    if not cfg.algorithm.autoregressive:
         feed = {"rep": rep, **({"available": available} if discrete else {})}
         params = step.run(None, feed)[0]
         actions = params.argmax(-1)[..., None].astype(np.float32) if discrete else params

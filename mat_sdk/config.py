@@ -14,35 +14,21 @@ import re
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
+from mat_sdk.algorithms import algorithm
+
 if TYPE_CHECKING:  # torch and the model load only when used: the CLI reads defaults here
     from mat_sdk.model import ModelConfig
 
 ROLLOUT_BACKENDS = ("torch", "onnx")
 
-# Each recipe's changes to the dataclass defaults (the paper's MAT recipe), per algo.
-# "paper": the MAT paper's MA-MuJoCo settings, 10 epochs x 40 minibatches = 400 small Adam steps
-# per 4,000 env steps (MAPPO: its own rates, epochs and clip), tuned for GPU throughput.
-# "fast": the same data per update in few large minibatches with a larger step, as HARL's
-# tuned MA-MuJoCo recipes do: on a CPU the update is bound by the number of optimizer steps,
-# not by their size (docs/ALGORITHM.md has the search and its measurements).
-RECIPES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {
-        "mappo": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2},
-        # HARL's tuned MA-MuJoCo HAPPO (e.g. Walker2d 2x3): 5 epochs x 2 minibatches, lr 1e-3
-        # for actors and critic, clip 0.05, no entropy bonus, gradient norm 10
-        "happo": {
-            "lr": 1e-3,
-            "critic_lr": 1e-3,
-            "ppo_epochs": 5,
-            "num_minibatches": 2,
-            "clip": 0.05,
-            "entropy_coef": 0.0,
-            "max_grad_norm": 10.0,
-        },
-    },
-    # measured for MAT only: the others keep their paper's settings under it
-    "fast": {"mat": {"lr": 3e-4, "ppo_epochs": 5, "num_minibatches": 4, "clip": 0.1}},
-}
+# The named recipes a run starts from; each algorithm's changes to the dataclass defaults
+# (the paper's MAT recipe) are its own (`Algorithm.recipes`). "paper": the MAT paper's
+# MA-MuJoCo settings, 10 epochs x 40 minibatches = 400 small Adam steps per 4,000 env steps
+# (MAPPO, HAPPO: their papers' own), tuned for GPU throughput. "fast": the same data per update
+# in few large minibatches with a larger step: on a CPU the update is bound by the number of
+# optimizer steps, not by their size (docs/ALGORITHM.md has the search and its measurements);
+# measured for MAT only, the others keep their paper's settings under it.
+RECIPES = ("paper", "fast")
 DEFAULT_RECIPE = "fast"
 
 
@@ -171,10 +157,10 @@ class TrainConfig:
             raise ValueError(
                 f"faults must map names to 'zero', 'remove' or 'weak:S', got {self.faults!r}"
             )
-        if self.algo == "happo" and (self.update_workers or self.compile):
+        if algorithm(self.algo).sequential_update and (self.update_workers or self.compile):
             raise ValueError(
-                "HAPPO updates its agents one after another in this process: update_workers "
-                "and compile do not apply to it; leave them at 0 and false"
+                f"{self.algo.upper()} updates its agents one after another in this process: "
+                "update_workers and compile do not apply to it; leave them at 0 and false"
             )
         if self.recipe not in RECIPES:
             raise ValueError(f"recipe must be one of {', '.join(RECIPES)}, got {self.recipe!r}")
@@ -272,5 +258,6 @@ class TrainConfig:
         if unknown:
             raise ValueError(f"unknown training option(s) {sorted(unknown)}")
         # an unknown recipe gets no settings here and is refused by the config's own check
-        settings = RECIPES.get(recipe, {}).get(algo, RECIPES["paper"].get(algo, {}))
+        recipes = algorithm(algo).recipes
+        settings = recipes.get(recipe, recipes.get("paper", {}))
         return cls(**{"algo": algo, "recipe": recipe, **settings, **overrides})

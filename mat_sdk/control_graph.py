@@ -33,7 +33,7 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from mat_sdk.model import HAPPO, MAPPO, MAT, UNAVAILABLE_LOGIT, PolicyNetwork
+from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, PolicyNetwork
 
 OPSET = 24  # `Attention` with a KV cache
 LOOP_STEPS = (1, 8)  # agent steps per iteration of the any-count graph's `Loop`s
@@ -163,17 +163,18 @@ def build_decode(
     value_fold = {"scale": value_std, "shift": value_mean}  # ValueNorm's de-normalisation
     std = None if discrete else policy.std().detach().cpu().numpy()
     shift = _noise_shift(g, std)
-    if isinstance(policy, MAT):
+    algorithm = cfg.algorithm
+    if algorithm.autoregressive:
         rep, values = _encoder(g, x, cfg, value_fold)
         tokens = _normalised_tokens(policy)
         first = _first_attentions(policy, tokens[0])
         params = _decoder(g, rep, cfg, shift, agents, tokens, first)
     else:
-        if isinstance(policy, (MAPPO, HAPPO)):
+        if algorithm.centralised_critic:
             values = _mappo_values(g, x, cfg, value_fold)
         else:
             values = _encoder(g, x, cfg, value_fold)[1]
-        actor = _agent_actors(g, x, cfg) if isinstance(policy, HAPPO) else _mlp(g, x, "mlp")
+        actor = _agent_actors(g, x, cfg) if algorithm.actor_per_agent else _mlp(g, x, "mlp")
         params = _decentralised_sample(g, actor, shift, discrete)
     head = ["logits"] if discrete else ["mean", "std"]
     g.op("Identity", values, outputs=["values"])

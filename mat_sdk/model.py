@@ -30,10 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mat_runtime.manifest import ALGOS  # one list for the trainer, the exporter and the runtime
+from mat_sdk.algorithms import Algorithm, algorithm
 
-# Algorithms whose critic reads the joint observation of a fixed number of agents
-FIXED_TEAM = ("mappo", "happo")
 ACTION_TYPES = ("continuous", "discrete")
 UNAVAILABLE_LOGIT = -1e10
 
@@ -81,18 +79,22 @@ class ModelConfig:
             raise ValueError(
                 f"model attention_window must be an integer >= 2 or None, got {window!r}"
             )
-        if self.algo not in ALGOS:
-            raise ValueError(f"unknown algo {self.algo!r}; valid: {', '.join(ALGOS)}")
+        algorithm(self.algo)  # a known name, or ValueError listing them
         if self.action_type not in ACTION_TYPES:
             raise ValueError(f"action_type must be one of {ACTION_TYPES}, got {self.action_type!r}")
         if self.n_embd % self.n_head:
             raise ValueError(f"n_embd {self.n_embd} must be divisible by n_head {self.n_head}")
 
     @property
+    def algorithm(self) -> Algorithm:
+        """What the algorithm does differently (`mat_sdk.algorithms`)."""
+        return algorithm(self.algo)
+
+    @property
     def fixed_team(self) -> bool:
         """Whether the policy acts for exactly `n_agents` agents (a joint-observation critic,
         or HAPPO's actor per agent)."""
-        return self.algo in FIXED_TEAM
+        return algorithm(self.algo).centralised_critic
 
     def to_dict(self) -> dict:
         """As a checkpoint stores it (`CHECKPOINT_KEYS`: the names checkpoints have always
@@ -588,8 +590,17 @@ class HAPPO(Decentralised):
         return self.dist.log_prob_entropy(dist, actions[:, agent])
 
 
+POLICIES: dict[str, type[PolicyNetwork]] = {
+    "mat": MAT,
+    "mat-dec": MATDec,
+    "mappo": MAPPO,
+    "happo": HAPPO,
+}
+
+
 def build_policy(cfg: ModelConfig) -> PolicyNetwork:
-    return {"mat": MAT, "mat-dec": MATDec, "mappo": MAPPO, "happo": HAPPO}[cfg.algo](cfg)
+    """The untrained policy network of `cfg.algo` (`mat_sdk.algorithms`)."""
+    return POLICIES[cfg.algo](cfg)
 
 
 def check_fits(cfg: ModelConfig, env, env_id: str) -> None:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from mat_sdk import files
+from mat_sdk.algorithms import algorithm
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.protocol import EvaluationLog
 from mat_sdk.trainer import Trainer
@@ -171,7 +172,7 @@ def tuned(request: RunRequest, say: Say = print) -> dict[str, Any]:
     from mat_sdk import envs
     from mat_sdk.tuning import TUNED, tuned_settings, wanted
 
-    if request.algo == "happo":  # its sequential update has no levers to measure
+    if algorithm(request.algo).sequential_update:  # no levers to measure
         return {}
     fixed = {name: request.options[name] for name in TUNED if name in request.given}
     device = request.options.get("device", "cpu")

@@ -29,7 +29,7 @@ from mat_sdk.envs import Env
 from mat_sdk.envs.reward_check import check_reward
 from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
-from mat_sdk.model import HAPPO, ModelConfig, PolicyNetwork, build_policy, check_fits
+from mat_sdk.model import ModelConfig, PolicyNetwork, build_policy, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
 from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
@@ -116,7 +116,7 @@ class Trainer:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`); MAPPO's
         critic gets its own learning rate when `critic_lr` is set."""
         critic = getattr(self.policy, "critic", None) if self.config.critic_lr else None
-        actors = list(self.policy.actors) if isinstance(self.policy, HAPPO) else None
+        actors = list(self.policy.actors) if self.model_config.algorithm.actor_per_agent else None
         self.params, self.optimizer = flat_adam(
             self.policy, self.config.lr, self.config.adam_eps, critic, self.config.critic_lr,
             parts=actors,
@@ -214,7 +214,7 @@ class Trainer:
     def _update(self, trajectory: Trajectory) -> dict[str, float]:
         cfg = self.config
         rows = trajectory.rows(cfg.advantage_std_floor)
-        if isinstance(self.policy, HAPPO):  # agents one after another (mat_sdk.happo)
+        if self.model_config.algorithm.sequential_update:  # agents in turn (mat_sdk.happo)
             losses, finite = happo.update(
                 self.policy, self.params, self.optimizer, self.value_norm, rows, cfg,
                 self.collector.shuffle_generator,

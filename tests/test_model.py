@@ -83,3 +83,20 @@ def test_official_std_parametrisation_and_bad_config():
     assert torch.allclose(policy.std(), torch.sigmoid(torch.ones(2)) * 0.5)
     with pytest.raises(ValueError, match="unknown algo 'ppo'"):
         ModelConfig(obs_dim=3, action_size=2, n_agents=2, algo="ppo")
+
+
+def test_every_algorithm_has_a_policy_and_the_registry_matches_the_runtimes_names():
+    from mat_runtime.manifest import ALGOS, FIXED_TEAM
+    from mat_sdk.algorithms import ALGORITHMS, algorithm
+    from mat_sdk.model import POLICIES, build_policy
+
+    assert tuple(ALGORITHMS) == ALGOS and set(POLICIES) == set(ALGOS)
+    for name in ALGOS:
+        cfg = ModelConfig(obs_dim=3, action_size=2, n_agents=2, algo=name)
+        policy = build_policy(cfg)
+        assert cfg.algorithm.name == name and cfg.fixed_team == (name in FIXED_TEAM)
+        # what the registry says an algorithm does is what its policy has
+        assert hasattr(policy, "decoder") == algorithm(name).autoregressive
+        assert hasattr(policy, "actors") == algorithm(name).actor_per_agent
+    with pytest.raises(ValueError, match="unknown algo 'ppo'; valid: mat, mat-dec"):
+        algorithm("ppo")

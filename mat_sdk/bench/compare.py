@@ -24,7 +24,7 @@ from mat_sdk.recipes import EVALUATION_SEED, SPREAD_EVALUATIONS, spread_return
 from mat_sdk.run_log import METRICS_NAME, read_metrics
 from mat_sdk.timing import print_table
 
-ALGOS = ("mat", "mat-dec", "mappo")
+COMPARED = ("mat", "mat-dec", "mappo")
 
 
 def _train(job: tuple[str, str, int, int, str]) -> tuple[str, int, float]:
@@ -38,7 +38,7 @@ def _train(job: tuple[str, str, int, int, str]) -> tuple[str, int, float]:
 def _curves(out: Path, seeds: list[int]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per algorithm: env steps and the per-update returns [seeds, updates]."""
     curves = {}
-    for algo in ALGOS:
+    for algo in COMPARED:
         runs = [read_metrics(out / f"{algo}-s{seed}" / METRICS_NAME) for seed in seeds]
         steps = np.array([int(r["steps"]) for r in runs[0]])
         returns = np.array([[float(r["return_mean"]) for r in rows] for rows in runs])
@@ -79,13 +79,13 @@ def main() -> None:
     args = parser.parse_args()
     runs = args.out / "runs"
     seeds = list(range(args.seeds))
-    jobs = [(args.env_id, algo, seed, args.steps, str(runs)) for algo in ALGOS for seed in seeds]
+    jobs = [(args.env_id, algo, seed, args.steps, str(runs)) for algo in COMPARED for seed in seeds]
     with mp.get_context("spawn").Pool(min(len(jobs), usable_cores())) as pool:
         results = pool.map(_train, jobs, chunksize=1)
     print(f"machine: {machine()}; {args.env_id}, {args.steps} steps, recipe seeds.SPREAD")
     print(f"evaluation: {SPREAD_EVALUATIONS} deterministic episodes, seed {EVALUATION_SEED}\n")
     rows = []
-    for algo in ALGOS:
+    for algo in COMPARED:
         scores = [score for a, _, score in results if a == algo]
         rows.append(
             {
