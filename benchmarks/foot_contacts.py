@@ -22,9 +22,11 @@ from mat_sdk.evaluation import CheckpointPolicy
 def contact_shares(path: str, command: tuple[float, float, float], steps: int, seed: int):
     """(foot names, each foot's share of `steps` steps in contact) for one checkpoint."""
     loaded = CheckpointPolicy.from_checkpoint(path)
-    train = loaded.config["train"]
-    envs.check_trusted([train["env"]], True, path)  # the user named these files
-    team = envs.make_team(train["env"], seed=seed, command=list(command), **train["env_options"])
+    trained = loaded.training.env
+    envs.check_trusted([trained.id], True, path)  # the user named these files
+    team = envs.make_team(
+        trained.id, trained.faults, seed=seed, command=list(command), **trained.options
+    )
     start, stop = team.wiring()["observation"]["source"]["contacts"]
     feet = team.wiring()["observation"]["signals"]["contacts"]
     obs = team.reset(seed=seed)

@@ -13,6 +13,7 @@ from pathlib import Path
 from mat_export import export
 from mat_runtime import Policy
 from mat_sdk.envs import make_team
+from mat_sdk.faults import Fault
 from mat_sdk.finetune import finetune
 
 
@@ -23,10 +24,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20_000, help="fine-tuning env steps")
     parser.add_argument("--out", type=Path, default=Path("runs/finetune-example"))
     args = parser.parse_args()
-    joint, mode = args.fault.split("=")
+    fault = Fault.parse(args.fault)
 
     # 1. Zero-shot evaluation on the changed robot, then PPO from the pre-trained weights.
-    result = finetune(args.checkpoint, faults={joint: mode}, steps=args.steps, out_dir=args.out)
+    result = finetune(args.checkpoint, faults=[fault], steps=args.steps, out_dir=args.out)
     result.trainer.close()
     print(f"zero-shot {result.zero_shot_mean:.1f} -> fine-tuned {result.final_mean:.1f}")
 

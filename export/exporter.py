@@ -130,9 +130,10 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
 def _check_env(payload: dict, cfg: ModelConfig):
     """The bundle names the robot it drives: that env must exist and fit the model. Returns
     the team, for its wiring."""
-    env_id, train = checkpoint.env_id(payload), payload["config"]["train"]
+    trained = checkpoint.recorded_config(payload).env
+    env_id = trained.id
     try:
-        team = envs.make_team(env_id, train.get("faults") or {}, **(train.get("env_options") or {}))
+        team = envs.make_team(env_id, trained.faults, **trained.options)
     except (ValueError, TypeError) as error:
         raise ExportError(
             f"the checkpoint was trained on env {env_id!r}, which cannot be made here ({error}); "

@@ -10,6 +10,8 @@ import onnx
 
 from mat_export.errors import ExportError
 from mat_export.graphs import cache_names
+from mat_sdk import checkpoint
+from mat_sdk.faults import as_mapping
 from mat_sdk.model import ModelConfig
 
 FORMAT = "mat-onnx"
@@ -37,7 +39,7 @@ def finish_graph(path: Path, manifest: dict) -> None:
 
 
 def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
-    env, train = payload["config"]["env"], payload["config"]["train"]
+    env, train = payload["config"]["env"], checkpoint.recorded_config(payload)
     token = cfg.action_size + 1 if cfg.action_type == "discrete" else cfg.action_size
     return {
         "format": FORMAT,
@@ -65,9 +67,9 @@ def manifest(payload, cfg: ModelConfig, graphs, checkpoint_path) -> dict:
             "trained_counts": env.get("counts") or [cfg.n_agents],  # every count trained on
             "names": env.get("agents"),
         },
-        "env_id": train["env"],  # with the faults and options the policy was trained under
-        "env_faults": dict(train.get("faults") or {}),
-        "env_options": dict(train.get("env_options") or {}),
+        "env_id": train.env.id,  # with the faults and options the policy was trained under
+        "env_faults": as_mapping(train.env.faults),
+        "env_options": dict(train.env.options),
         "randomization": env.get("randomization"),  # null: trained without
         "caches": [{"past": p, "present": q} for p, q in cache_names(cfg.n_block)]
         if cfg.algorithm.autoregressive

@@ -30,7 +30,8 @@ class Algorithm:
     # agents update one after another, each on the others' new policy (`mat_sdk.happo`):
     # no update workers, torch.compile or tuning of them
     sequential_update: bool = False
-    # each named recipe's changes to the training defaults (`mat_sdk.config.RECIPES`)
+    # each named recipe's changes to the training defaults (`mat_sdk.config.RECIPES`); an
+    # algorithm without settings of a recipe's own trains with its "paper" ones
     recipes: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @property
@@ -39,21 +40,24 @@ class Algorithm:
         return "autoregressive" if self.autoregressive else "decentralised"
 
 
+# The MAT paper's MA-MuJoCo update over the defaults' "fast" one (`mat_sdk.config.RECIPES`)
+PAPER_MAT = {"lr": 5e-5, "ppo_epochs": 10, "num_minibatches": 40, "clip": 0.05}
+
 ALGORITHMS: dict[str, Algorithm] = {
     a.name: a
     for a in (
         Algorithm(
             "mat",
             autoregressive=True,
-            # the same data per update in few large minibatches with a larger step, as
-            # HARL's tuned MA-MuJoCo recipes do (docs/ALGORITHM.md)
-            recipes={"fast": {"lr": 3e-4, "ppo_epochs": 5, "num_minibatches": 4, "clip": 0.1}},
+            recipes={"fast": {}, "paper": PAPER_MAT},  # the defaults are its "fast" recipe
         ),
-        Algorithm("mat-dec"),
+        Algorithm("mat-dec", recipes={"paper": PAPER_MAT}),
         Algorithm(
             "mappo",
             centralised_critic=True,
-            recipes={"paper": {"lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2}},
+            recipes={
+                "paper": {**PAPER_MAT, "lr": 5e-6, "critic_lr": 5e-3, "ppo_epochs": 5, "clip": 0.2}
+            },
         ),
         Algorithm(
             "happo",

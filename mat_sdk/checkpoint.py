@@ -13,7 +13,6 @@ import re
 import shutil
 import tempfile
 import warnings
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,8 @@ import torch
 
 from mat_runtime import zoo
 from mat_sdk import files
+from mat_sdk.config import RESUMABLE, TrainConfig
+from mat_sdk.faults import as_mapping
 
 FORMAT = "mat-checkpoint"
 VERSION = 1
@@ -48,7 +49,7 @@ def training_payload(
     env = collector.env
     return {
         "config": {
-            "train": asdict(config),  # the env id is `train.env`: stored once
+            "train": config.to_dict(),  # the env id is `train.env.id`: stored once
             "model": model_config.to_dict(),
             "env": {
                 "counts": [c.env.n_agents for c in collectors],  # per env id
@@ -85,44 +86,68 @@ def training_payload(
     }
 
 
-def env_id(payload: dict[str, Any]) -> str:
-    """The id of the env a checkpoint trained on (`config.train.env`)."""
-    return payload["config"]["train"]["env"]
+def env_id(payload: dict[str, Any]) -> Any:
+    """The id of the env a checkpoint trained on (`config.train.env.id`; `config.train.env`
+    in files from before the config's parts), unchecked."""
+    env = payload["config"]["train"].get("env")
+    return env.get("id") if isinstance(env, dict) else env
 
 
-# What a resume may change: how the run is computed, not what is trained.
-RESUME_OVERRIDES = ("device", "workers", "update_workers", "checkpoint_every")
+def recorded_config(payload: dict[str, Any]) -> TrainConfig:
+    """The `TrainConfig` a checkpoint records (`TrainConfig.from_dict`)."""
+    return TrainConfig.from_dict(payload["config"]["train"])
 
 
 def recorded_training(payload: dict[str, Any]) -> dict[str, Any]:
-    """The `TrainConfig` fields a checkpoint records; a run from before recipes existed was
-    the paper's."""
-    return {"recipe": "paper", **payload["config"]["train"]}
+    """The training options a checkpoint records, by their flat names."""
+    return recorded_config(payload).options()
+
+
+def pretrained_options(
+    payload: dict[str, Any], path: str | os.PathLike, changes: dict[str, Any]
+) -> dict[str, Any]:
+    """The training options of a fine-tuning run from the checkpoint at `path`: its own, its
+    model's size, on one env id, `changes` (faults, lr, any option) over them."""
+    train = recorded_training(payload)
+    model = payload["config"]["model"]
+    train.update({key: model[key] for key in ("n_embd", "n_head", "n_block")})
+    train["attention_window"] = model.get("attention_window")  # absent before windows
+    return {**train, "init_from": str(path), "more_envs": (), "faults": (), **changes}
 
 
 def training_options(
     payload: dict[str, Any], path: str | os.PathLike, given: dict[str, Any]
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The `TrainConfig` fields of the run a checkpoint holds, and what of `given` changes
-    them: how to run it (`RESUME_OVERRIDES`); any other field given must be the checkpoint's
+    """The training options of the run a checkpoint holds, and what of `given` changes
+    them: how to run it (`config.RESUMABLE`); any other option given must be the checkpoint's
     own, since the task, model and hyperparameters are the run's. The one resume rule, for
-    `Trainer.load` and `mat train --resume` alike. -> (fields, the overrides applied)."""
+    `Trainer.load` and `mat train --resume` alike. -> (options, the overrides applied)."""
     train = recorded_training(payload)
-    if not isinstance(train.get("algo"), str) or not isinstance(train.get("env"), str):
-        raise CheckpointError(f"{path}: config.train names no env and algo")
+    unknown = sorted(set(given) - set(train))
+    if unknown:
+        raise ValueError(f"{unknown[0]} is not a training option")
+    # each given value as the config holds it (a list of ids as a tuple, faults typed, ...)
+    given = {k: v for k, v in TrainConfig.from_options({**train, **given}).options().items()
+             if k in given}  # fmt: skip
     changed = {}
     for field, value in given.items():
-        if field in RESUME_OVERRIDES:
+        if field in RESUMABLE:
             if value != train.get(field):
                 changed[field] = value
-        elif field not in train:
-            raise ValueError(f"{field} is not a training option")
         elif value != train[field]:
+            was, got = _shown(field, train[field]), _shown(field, value)
             raise ValueError(
-                f"{path} continues its run as it was trained, with {field}={train[field]!r}; got "
-                f"{field}={value!r}. Drop that option, or start a new run in another directory"
+                f"{path} continues its run as it was trained, with {field}={was}; got "
+                f"{field}={got}. Drop that option, or start a new run in another directory"
             )
     return {**train, **changed}, changed
+
+
+def _shown(field: str, value: Any) -> str:
+    """An option's value as the user gives it: faults in their mapping form, lists."""
+    if field == "faults":
+        return repr(as_mapping(value))
+    return repr(list(value) if isinstance(value, tuple) else value)
 
 
 def restore_pretrained(
@@ -317,18 +342,20 @@ def _check_structure(path: Path, payload: dict[str, Any]) -> None:
         ModelConfig.from_dict(config["model"])
     except ValueError as error:
         fail("config.model", f"is invalid ({error})")
-    if not isinstance(config["train"].get("env"), str):
-        fail("config.train.env", f"must be a string, got {config['train'].get('env')!r}")
-    if "id" in config["env"] and config["env"]["id"] != config["train"]["env"]:  # before 2026-12-03
-        fail("config.env.id", f"differs from config.train.env ({config['train']['env']!r})")
-    _check_train_config(config["train"], fail)
+    trained_on = env_id(payload)
+    if not isinstance(trained_on, str):
+        fail("config.train.env.id", f"must be a string, got {trained_on!r}")
+    if "id" in config["env"] and config["env"]["id"] != trained_on:  # before 2026-12-03
+        fail("config.env.id", f"differs from config.train.env ({trained_on!r})")
+    try:
+        recorded_config(payload)
+    except (ValueError, TypeError) as error:
+        fail("config.train", f"is invalid ({error})")
     weights = payload.get("model")
     if not isinstance(weights, dict) or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in weights.items()
     ):
         fail("model", "must map parameter names to tensors")
-    if not isinstance(config["train"].get("normalize_obs"), bool):
-        fail("config.train.normalize_obs", "must be true or false")
     for part, tensors in NORMALISERS.items():
         state = payload.get(part)
         if not isinstance(state, dict) or not all(
@@ -342,23 +369,6 @@ def _check_structure(path: Path, payload: dict[str, Any]) -> None:
         fail("progress", f"must hold steps and updates counts, got {progress!r}")
 
 
-def _check_train_config(train: dict[str, Any], fail) -> None:
-    """Every field a tool reads from `config.train` has its type and range (`TrainConfig`'s
-    own checks); fields newer than the checkpoint take their defaults."""
-    from dataclasses import fields
-
-    from mat_sdk.config import TrainConfig
-
-    known = {f.name for f in fields(TrainConfig)}
-    unknown = sorted(set(train) - known, key=str)
-    if unknown:
-        fail("config.train", f"has fields this SDK does not know ({unknown[:5]})")
-    try:
-        TrainConfig(**train)
-    except (ValueError, TypeError) as error:
-        fail("config.train", f"is invalid ({error})")
-
-
 def restore_policy(payload: dict[str, Any], path: str | os.PathLike):
     """The policy a checkpoint holds, in eval mode, and the observation normaliser it was
     trained with (None when it trained on raw observations): what every reader acts with."""
@@ -369,7 +379,7 @@ def restore_policy(payload: dict[str, Any], path: str | os.PathLike):
     load_weights(policy, payload["model"], path)
     policy.eval()
     norm = None
-    if payload["config"]["train"]["normalize_obs"]:
+    if recorded_config(payload).ppo.normalize_obs:
         norm = RunningMeanStd(policy.cfg.obs_dim)
         norm.load_state_dict(payload["obs_norm"])
     return policy, norm

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from mat_sdk import checkpoint, envs
+from mat_sdk.config import TrainConfig
 from mat_sdk.model import PolicyNetwork, check_fits
 from mat_sdk.normalization import RunningMeanStd
 
@@ -25,14 +26,14 @@ class CheckpointPolicy:
 
     policy: PolicyNetwork
     obs_norm: RunningMeanStd | None
-    config: dict[str, Any]
+    training: TrainConfig  # how it was trained: its env, faults and options among it
     source: str = "the checkpoint"  # where the policy came from, for messages
 
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> CheckpointPolicy:
         payload = checkpoint.load(path)
         policy, norm = checkpoint.restore_policy(payload, path)
-        return cls(policy, norm, payload["config"], str(path))
+        return cls(policy, norm, checkpoint.recorded_config(payload), str(path))
 
     def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):
         """Actions for raw observations of `team` (an env with its agents and sizes): an
@@ -177,12 +178,12 @@ def evaluate_episodes(
 
     Without `env_id`, the env the policy was trained on; a `module:function` id that the
     checkpoint records is imported only with `trust_env_code=True`."""
-    train = loaded.config["train"]
+    trained = loaded.training.env
     if env_id is None:
-        envs.check_trusted([train["env"]], trust_env_code, loaded.source)
-    env_id = env_id or train["env"]
-    faults = train["faults"] if faults is None else faults
-    options = {**train["env_options"], **env_options}
+        envs.check_trusted([trained.id], trust_env_code, loaded.source)
+    env_id = env_id or trained.id
+    faults = trained.faults if faults is None else faults
+    options = {**trained.options, **env_options}
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:

@@ -1,7 +1,8 @@
 """Few-shot fine-tuning: adapt a trained policy to a changed robot with little new data.
 
+    from mat_sdk.faults import Fault
     from mat_sdk.finetune import finetune
-    result = finetune("runs/cheetah/checkpoint.pt", faults={"bthigh": "zero"},
+    result = finetune("runs/cheetah/checkpoint.pt", faults=[Fault.zero("bthigh")],
                       steps=20_000, out_dir="runs/cheetah-bthigh")
     print(result.zero_shot_mean, "->", result.final_mean)
 
@@ -47,7 +48,7 @@ class FinetuneResult:
 def finetune(
     checkpoint: str | Path,
     env: str | None = None,
-    faults: dict[str, str] | None = None,
+    faults: envs.FaultsLike = None,
     steps: int = 20_000,
     out_dir: str | Path | None = None,
     eval_episodes: int = 10,
@@ -64,7 +65,7 @@ def finetune(
 
     `env` defaults to the checkpoint's env; `faults` describe the change; `action_std`
     re-opens exploration (a continuous policy's action std set afresh, e.g. 0.3, where a
-    long training left it near 0.1); `options` are any TrainConfig fields (num_envs, seed,
+    long training left it near 0.1); `options` are any training options (num_envs, seed,
     ...). With `resume=True`, continues the run in `out_dir` after an interruption, as it
     was started (`options` then may only say how to run: device, workers, update_workers,
     checkpoint_every). Writes OUT/finetune.json with both evaluations. Without `env`, a
@@ -95,9 +96,10 @@ def finetune(
     return FinetuneResult(trainer, zero_shot, final)
 
 
-def default_out(env: str | None, faults: dict[str, str] | None) -> Path:
+def default_out(env: str | None, faults: envs.FaultsLike) -> Path:
     """runs/finetune-<the change>: its faults, else the env."""
-    label = "-".join(f"{k}_{v}" for k, v in (faults or {}).items()) or (env or "same")
+    changes = envs.faults_of(faults)
+    label = "-".join(f"{f.target}_{f.mode}" for f in changes) or (env or "same")
     return Path("runs") / f"finetune-{label.replace(':', '_')}"
 
 
@@ -141,8 +143,8 @@ def _write_summary(path: Path, trainer: Trainer, checkpoint, zero_shot, final) -
     cfg = trainer.config
     summary = {
         "pretrained": str(checkpoint),
-        "env": cfg.env,
-        "faults": cfg.faults,
+        "env": cfg.env.id,
+        "faults": envs.as_mapping(cfg.env.faults),
         "agents": list(trainer.env.agents),
         "steps": trainer.progress["steps"],
         "zero_shot": stats(zero_shot),

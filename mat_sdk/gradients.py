@@ -23,7 +23,7 @@ from torch import Tensor
 from mat_sdk import processes
 from mat_sdk.flat_params import FlatParameters, views
 from mat_sdk.model import PolicyNetwork
-from mat_sdk.ppo import LossCoefficients, LossTerms, minibatch_loss
+from mat_sdk.ppo import LossCoefficients, LossTerms, Rows, minibatch_loss
 from mat_sdk.processes import WorkerProcess, close_all, serve, wait_all
 
 if TYPE_CHECKING:
@@ -51,8 +51,7 @@ def _share_backward(
 ):
     """Backpropagate the loss of one share of a minibatch, weighted by its fraction of the
     rows; its weighted loss terms, stacked as `_TERMS`."""
-    mb = {key: value[rows] for key, value in batch.items()}
-    terms = loss(policy, mb, targets, coefficients)
+    terms = loss(policy, batch[rows], targets, coefficients)
     (terms.total * weight).backward()
     return torch.stack([getattr(terms, name).detach() for name in _TERMS]) * weight
 
@@ -64,9 +63,9 @@ class _Share:
     def __init__(
         self, policy: PolicyNetwork, config: TrainConfig, compile_mode, rank, parts, shared
     ):
-        config.configure_torch()
+        config.run.configure_torch()
         self.policy, self.rank, self.parts = policy, rank, parts
-        self.coefficients = LossCoefficients.of(config)
+        self.coefficients = LossCoefficients.of(config.ppo)
         self.loss = _loss_function(compile_mode)
         self.rows, layout, self.grads, self.terms = shared
         params = list(policy.parameters())
@@ -122,7 +121,7 @@ class MinibatchGradients:
         compile_mode: str | None = None,
     ):
         self.policy, self.params, self.config, self.workers = policy, params, config, workers
-        self.coefficients = LossCoefficients.of(config)
+        self.coefficients = LossCoefficients.of(config.ppo)
         self.compile_mode = compile_mode
         self._loss = _loss_function(compile_mode)
         self._batch: dict[str, Tensor] = {}
@@ -153,8 +152,8 @@ class MinibatchGradients:
             self._workers.append(WorkerProcess(context, _worker, arguments, spin))
         self._setting_up = True
 
-    def share(self, batch: dict[str, Tensor]) -> None:
-        """This update's batch as rows `{name: [rows, ...]}`; minibatches index into it."""
+    def share(self, batch: Rows) -> None:
+        """This update's rows; minibatches index into them."""
         self._batch = batch
         if not self.workers:
             return
@@ -162,11 +161,11 @@ class MinibatchGradients:
         if self._setting_up:
             self._wait()
             self._setting_up = False
-        rows = next(iter(batch.values())).shape[0]
+        rows = len(batch)
         if self._idx.shape[0] < rows:
             self._idx = torch.empty(rows, dtype=torch.int64).share_memory_()
-            self._targets = torch.empty_like(batch["returns"]).share_memory_()
-        for value in batch.values():
+            self._targets = torch.empty_like(batch.returns).share_memory_()
+        for value in batch.tensors().values():
             value.share_memory_()
         for worker in self._workers:
             worker.go("batch", (batch, self._idx, self._targets))
@@ -176,8 +175,7 @@ class MinibatchGradients:
         """Accumulate into `.grad` the gradient of the mean loss over rows `idx` (targets:
         their normalised returns); returns the minibatch's loss terms."""
         if not self.workers:
-            mb = {key: value[idx] for key, value in self._batch.items()}
-            terms = self._loss(self.policy, mb, targets, self.coefficients)
+            terms = self._loss(self.policy, self._batch[idx], targets, self.coefficients)
             terms.total.backward()
             return terms
         rows = idx.shape[0]

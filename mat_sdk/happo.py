@@ -22,10 +22,10 @@ from mat_sdk import ppo
 from mat_sdk.flat_params import FlatParameters
 from mat_sdk.model import HAPPO
 from mat_sdk.normalization import ValueNorm
-from mat_sdk.ppo import counted_entries, masked_mean, value_loss
+from mat_sdk.ppo import Rows, counted_entries, masked_mean, value_loss
 
 if TYPE_CHECKING:
-    from mat_sdk.config import TrainConfig
+    from mat_sdk.config import PPOConfig
 
 
 def update(
@@ -33,14 +33,14 @@ def update(
     params: FlatParameters,
     optimizer: torch.optim.Optimizer,
     value_norm: ValueNorm,
-    rows: dict[str, Tensor],
-    config: TrainConfig,
+    rows: Rows,
+    config: PPOConfig,
     generator: torch.Generator,
 ) -> tuple[dict[str, float], bool]:
     """One HAPPO update on the rollout's `rows` (`Trajectory.rows`): its mean loss terms, and
     whether every loss was finite."""
     critic = [policy.cfg.n_agents]  # the critic's group comes after the actors'
-    size, device = rows["obs"].shape[0], rows["obs"].device
+    size, device = len(rows), rows.obs.device
     sums = dict.fromkeys(("policy_loss", "value_loss", "entropy", "clip_fraction"), 0.0)
     norms: list[Tensor] = []
     finite = torch.ones((), dtype=torch.bool, device=device)
@@ -58,12 +58,11 @@ def update(
             optimizer.step()
 
     for idx in minibatches():
-        returns = rows["returns"][idx]
-        value_norm.update(returns)
-        active = rows["active"][idx] if "active" in rows else None
+        mb = rows[idx]
+        value_norm.update(mb.returns)
         loss = value_loss(
-            policy.values(rows["obs"][idx]), rows["values"][idx],
-            value_norm.normalize(returns), config.clip, config.huber_delta, active,
+            policy.values(mb.obs), mb.values,
+            value_norm.normalize(mb.returns), config.clip, config.huber_delta, mb.active,
         )  # fmt: skip
         step(config.value_coef * loss, critic)
         sums["value_loss"] += float(loss.detach()) / (config.ppo_epochs * config.num_minibatches)
@@ -73,10 +72,11 @@ def update(
     actor_steps = len(agents) * config.ppo_epochs * config.num_minibatches
     for agent in agents:
         for idx in minibatches():
-            active = rows["active"][idx, agent] if "active" in rows else None
-            log_ratio, entropy = _agent_terms(policy, agent, rows, idx, active)
+            mb = rows[idx]
+            active = None if mb.active is None else mb.active[:, agent]
+            log_ratio, entropy = _agent_terms(policy, agent, mb, active)
             ratio = torch.exp(log_ratio)
-            advantages = factor[idx] * rows["advantages"][idx, agent]
+            advantages = factor[idx] * mb.advantages[:, agent]
             surrogate = torch.min(
                 ratio * advantages, ratio.clamp(1 - config.clip, 1 + config.clip) * advantages
             )
@@ -90,23 +90,20 @@ def update(
             ):
                 sums[key] += float(value.detach()) / actor_steps
         with torch.no_grad():  # this agent's new policy weighs the next agents' advantages
-            log_ratio, _ = _agent_terms(policy, agent, rows, slice(None), None)
+            log_ratio, _ = _agent_terms(policy, agent, rows, None)
             factor = factor * torch.exp(log_ratio)
     metrics = {**sums, "grad_norm": float(torch.stack(norms).mean())}
     return metrics, bool(finite)
 
 
 def _agent_terms(
-    policy: HAPPO, agent: int, rows: dict[str, Tensor], idx, active: Tensor | None
+    policy: HAPPO, agent: int, mb: Rows, active: Tensor | None
 ) -> tuple[Tensor, Tensor]:
     """The agent's log(new / old probability) of its whole action [B, 1] (summed over its
     dimensions, padded ones left out) and its mean entropy over the counted entries."""
-    available = rows["available"][idx] if "available" in rows else None
-    log_prob, entropy = policy.agent_log_prob(
-        agent, rows["obs"][idx], rows["actions"][idx], available
-    )
-    difference = log_prob - rows["log_probs"][idx, agent]
-    dims = rows["action_dims"][idx, agent] if "action_dims" in rows else None
+    log_prob, entropy = policy.agent_log_prob(agent, mb.obs, mb.actions, mb.available)
+    difference = log_prob - mb.log_probs[:, agent]
+    dims = None if mb.action_dims is None else mb.action_dims[:, agent]
     if dims is not None:
         difference = torch.where(dims > 0, difference, torch.zeros_like(difference))
     return difference.sum(-1, keepdim=True), masked_mean(entropy, counted_entries(active, dims))

@@ -16,13 +16,42 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from mat_sdk.model import PolicyNetwork, in_agent_order
+
+
+@dataclass(frozen=True)
+class Rows:
+    """An update's samples, one row per env step (`Trajectory.rows`): what the PPO and HAPPO
+    losses read. Each tensor is [rows, n, ...]; the masks are None where the envs have none."""
+
+    obs: Tensor
+    actions: Tensor
+    log_probs: Tensor
+    values: Tensor
+    advantages: Tensor  # normalised over the update
+    returns: Tensor
+    order: Tensor | None = None  # the agent order each row acted in (`shuffle_agents`)
+    active: Tensor | None = None  # 1 for an agent in its episode, 0 after it left
+    available: Tensor | None = None  # discrete: the choices each agent may take
+    action_dims: Tensor | None = None  # 1 for an agent's real action dimensions, 0 padding
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+    def __getitem__(self, idx: Tensor) -> Rows:
+        """The rows `idx` of every tensor: a minibatch."""
+        return replace(self, **{name: tensor[idx] for name, tensor in self.tensors().items()})
+
+    def tensors(self) -> dict[str, Tensor]:
+        """Every tensor present, by name."""
+        present = ((f.name, getattr(self, f.name)) for f in fields(self))
+        return {name: tensor for name, tensor in present if tensor is not None}
 
 
 def gae(
@@ -146,7 +175,7 @@ def counted_entries(active: Tensor | None, action_dims: Tensor | None) -> Tensor
 
 @dataclass(frozen=True)
 class LossCoefficients:
-    """The numbers the PPO loss uses (`TrainConfig` fields of the same names)."""
+    """The numbers the PPO loss uses (`PPOConfig` fields of the same names)."""
 
     clip: float
     entropy_coef: float
@@ -155,34 +184,34 @@ class LossCoefficients:
 
     @classmethod
     def of(cls, config) -> LossCoefficients:
-        """The coefficients of anything with these fields, e.g. a `TrainConfig`."""
+        """The coefficients of anything with these fields, e.g. a `PPOConfig`."""
         return cls(config.clip, config.entropy_coef, config.value_coef, config.huber_delta)
 
 
 def minibatch_loss(
-    policy: PolicyNetwork, mb: dict[str, Tensor], targets: Tensor, coefficients: LossCoefficients
+    policy: PolicyNetwork, mb: Rows, targets: Tensor, coefficients: LossCoefficients
 ) -> LossTerms:
     """The PPO loss terms of one minibatch; `targets` are its normalised returns.
 
-    Agents are evaluated in the order they acted in (`mb["order"]`, where the rollout
-    shuffled them); the results come back in canonical order.
+    Agents are evaluated in the order they acted in (`mb.order`, where the rollout shuffled
+    them); the results come back in canonical order.
     """
-    inputs = [mb["obs"], mb["actions"]]
-    if "available" in mb:
-        inputs.append(mb["available"])
-    log_prob, entropy, values = in_agent_order(mb.get("order"), policy.evaluate_actions, *inputs)
+    inputs = [mb.obs, mb.actions]
+    if mb.available is not None:
+        inputs.append(mb.available)
+    log_prob, entropy, values = in_agent_order(mb.order, policy.evaluate_actions, *inputs)
     return ppo_loss(
         log_prob,
-        mb["log_probs"],
-        mb["advantages"],
+        mb.log_probs,
+        mb.advantages,
         entropy,
         values,
-        mb["values"],
+        mb.values,
         targets,
         coefficients.clip,
         coefficients.entropy_coef,
         coefficients.value_coef,
         coefficients.huber_delta,
-        mb.get("active"),
-        mb.get("action_dims"),
+        mb.active,
+        mb.action_dims,
     )

@@ -53,13 +53,13 @@ class EvaluationLog:
 
     def _run(self, trainer) -> dict[str, Any]:
         cfg = trainer.config
-        env, task = env_and_task(cfg.env)
+        env, task = env_and_task(cfg.env.id)
         algo = cfg.algo
         return (
             self.data.setdefault(env, {})
             .setdefault(task, {})
             .setdefault(algo, {})
-            .setdefault(f"seed_{cfg.seed}", {})
+            .setdefault(f"seed_{cfg.run.seed}", {})
         )
 
     def evaluations(self, trainer) -> list[dict[str, Any]]:
@@ -91,9 +91,9 @@ class EvaluationLog:
         path = self.out_dir / BEST_NAME
         best = CheckpointPolicy.from_checkpoint(path)
         # this run's own best policy: a file that records another env is refused
-        named = [trainer.config.env, *trainer.config.more_envs]
-        envs.check_trusted([best.config["train"]["env"]], False, str(path), named=named)
-        returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, env_id=trainer.config.env)
+        named = trainer.config.env.ids
+        envs.check_trusted([best.training.env.id], False, str(path), named=named)
+        returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, env_id=trainer.config.env.id)
         run["absolute_metrics"] = {"return": returns}
         self._write()
         return returns

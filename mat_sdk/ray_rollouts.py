@@ -4,7 +4,7 @@ current policy; the learner (the `Trainer` that owns this) gathers, updates and 
     mat train cheetah-6x1 --ray --workers 4            # a local Ray instance
     mat train cheetah-6x1 --ray auto --workers 32      # an existing cluster (`ray start`)
 
-Only imported when `TrainConfig.ray` is set, so Ray stays an optional extra
+Only imported when `RunConfig.ray` is set, so Ray stays an optional extra
 (`pip install 'mat-sdk[ray]'`). Worker k steps env copies `offset_k .. offset_k + share_k`
 with the same seeds a local run gives those copies. A worker that dies (its process killed,
 its node lost) is replaced by a fresh one, which collects the dead worker's share of the
@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import asdict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mat_sdk.rollout import Trajectory
+
+if TYPE_CHECKING:
+    from mat_sdk.config import TrainConfig
 
 log = logging.getLogger(__name__)
 _REPLACEMENT_SEED_STRIDE = 7919  # a fresh worker's envs must not replay the dead one's
@@ -32,23 +34,19 @@ _REPLACEMENT_SEED_STRIDE = 7919  # a fresh worker's envs must not replay the dea
 class RolloutWorker:
     """A Ray actor: a rollout collector for its share of the env copies."""
 
-    def __init__(self, config: dict[str, Any], offset: int, share: int, generation: int):
-        from mat_sdk.config import TrainConfig
+    def __init__(self, config: TrainConfig, offset: int, share: int, generation: int):
         from mat_sdk.model import build_policy
         from mat_sdk.rollout import RolloutCollector
 
-        own = TrainConfig(
-            **{
-                **config,
-                "num_envs": share,
-                "workers": 0,
-                "update_workers": 0,
-                "device": "cpu",
-                "ray": None,
-                "seed": config["seed"] + offset + _REPLACEMENT_SEED_STRIDE * generation,
-            }
+        own = config.with_options(
+            num_envs=share,
+            workers=0,
+            update_workers=0,
+            device="cpu",
+            ray=None,
+            seed=config.run.seed + offset + _REPLACEMENT_SEED_STRIDE * generation,
         )
-        own.configure_torch()
+        own.run.configure_torch()
         env = own.make_envs()
         self.collector = RolloutCollector(env, build_policy(own.model_config(env)), own)
 
@@ -97,15 +95,13 @@ class RayRollouts:
         import ray
 
         self.ray = ray
-        self._started_ray = connect(config.ray, cpus=config.workers)
-        workers = max(1, config.workers)
-        if workers > config.num_envs:
-            raise ValueError(
-                f"{workers} Ray workers need at least as many envs, not {config.num_envs}"
-            )
-        shares = np.array_split(np.arange(config.num_envs), workers)
+        self._started_ray = connect(config.run.ray, cpus=config.run.workers)
+        workers, num_envs = max(1, config.run.workers), config.ppo.num_envs
+        if workers > num_envs:
+            raise ValueError(f"{workers} Ray workers need at least as many envs, not {num_envs}")
+        shares = np.array_split(np.arange(num_envs), workers)
         self._plan = [(int(part[0]), len(part)) for part in shares]
-        self._config = asdict(config)
+        self._config = config
         self._actor = ray.remote(num_cpus=1, max_restarts=0)(RolloutWorker)
         self.replacements = 0
         self.actors = [self._start(k, generation=0) for k in range(workers)]

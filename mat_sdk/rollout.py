@@ -3,7 +3,7 @@
     collector = RolloutCollector(env, policy, config)
     trajectory = collector.collect()                     # rollout_length steps of every env
     trajectory = collector.advantages(trajectory, value_norm)  # with GAE and returns
-    rows = trajectory.rows(config.advantage_std_floor)   # the update's rows
+    rows = trajectory.rows(config.ppo.advantage_std_floor)   # the update's rows
 
 The trainer, the Ray rollout workers, the benchmarks and the tests all collect through this
 one class. It owns what acting needs: the observation normaliser (updated as observations
@@ -26,7 +26,7 @@ from mat_sdk.config import TrainConfig
 from mat_sdk.envs import VecTeam
 from mat_sdk.model import PolicyNetwork, in_agent_order
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
-from mat_sdk.ppo import gae
+from mat_sdk.ppo import Rows, gae
 
 STEP_FIELDS = ("obs", "actions", "log_probs", "values", "rewards", "terminated", "done")
 MASK_FIELDS = ("order", "active", "available", "action_dims")  # where the envs have them
@@ -62,19 +62,19 @@ class Trajectory:
     reward_terms: Tensor | None = None
     term_names: tuple[str, ...] = ()
 
-    def rows(self, std_floor: float = 0.0) -> dict[str, Tensor]:
+    def rows(self, std_floor: float = 0.0) -> Rows:
         """The update's rows [T * E, ...] of every per-step tensor the update reads, with the
         advantages normalised over all of them (their std floored at `std_floor`)."""
         if self.advantages is None:
             raise ValueError("rows need the advantages: RolloutCollector.advantages first")
-        names = ("obs", "actions", "log_probs", "values", *MASK_FIELDS, "advantages", "returns")
+        names = [f.name for f in dataclasses.fields(Rows)]
         flat = {k: getattr(self, k).flatten(0, 1) for k in names if getattr(self, k) is not None}
         advantages = flat["advantages"]
         # over the agents in their episode only, as the official code (its active masks)
         counted = advantages if "active" not in flat else advantages[flat["active"] > 0]
         scale = counted.std().clamp_min(std_floor) + 1e-5
         flat["advantages"] = (advantages - counted.mean()) / scale
-        return flat
+        return Rows(**flat)
 
     def diagnostics(self) -> dict[str, float]:
         """What says whether learning can still move: the advantages' spread before they are
@@ -125,7 +125,7 @@ class Trajectory:
 
 
 class RolloutCollector:
-    """Steps `env` with `policy` for `config.rollout_length` steps per `collect`."""
+    """Steps `env` with `policy` for `config.ppo.rollout_length` steps per `collect`."""
 
     def __init__(
         self,
@@ -140,7 +140,7 @@ class RolloutCollector:
         policy collecting on several envs, e.g. several agent counts of a family)."""
         self.env, self.policy, self.config = env, policy, config
         self.device = torch.device(device)
-        seed = config.seed if seed is None else seed
+        seed = config.run.seed if seed is None else seed
         self.next_obs = env.reset(seed=seed)
         if share is not None:
             self.obs_norm, self.generator = share.obs_norm, share.generator
@@ -151,7 +151,7 @@ class RolloutCollector:
         # agent orders here, minibatch permutations in the update: one stream, as saved
         self.shuffle_generator = torch.Generator().manual_seed(seed + 1)
         self.onnx_actor = None
-        if config.rollout_backend == "onnx":
+        if config.run.rollout_backend == "onnx":
             from mat_sdk.onnx_actor import OnnxActor
 
             self.onnx_actor = OnnxActor(policy)
@@ -159,7 +159,7 @@ class RolloutCollector:
     def observe(self, obs: np.ndarray, update: bool = False) -> Tensor:
         """Raw observations as the policy's input (normalised; `update`: fold them into the
         running statistics first)."""
-        if self.config.normalize_obs:
+        if self.config.ppo.normalize_obs:
             if update:
                 self.obs_norm.update(obs)
             obs = self.obs_norm.normalize(obs)
@@ -167,7 +167,7 @@ class RolloutCollector:
 
     def agent_order(self, batch: int) -> Tensor | None:
         """A random decoding order per env (`shuffle_agents`), else None: canonical order."""
-        if not self.config.shuffle_agents:
+        if not self.config.ppo.shuffle_agents:
             return None
         keys = torch.rand(batch, self.env.n_agents, generator=self.shuffle_generator)
         return keys.argsort(dim=1).to(self.device)
@@ -215,7 +215,7 @@ class RolloutCollector:
         its own statistics (Ray workers collect with a copy of the learner's).
         """
         cfg, env, device = self.config, self.env, self.device
-        T, E, n = cfg.rollout_length, cfg.num_envs, env.n_agents
+        T, E, n = cfg.ppo.rollout_length, cfg.ppo.num_envs, env.n_agents
         buffers: dict[str, list] = {name: [] for name in (*STEP_FIELDS, *MASK_FIELDS[:3])}
         terms: list[np.ndarray] = []
         raw = [self.next_obs]
@@ -290,7 +290,7 @@ class RolloutCollector:
             next_values,
             trajectory.terminated,
             trajectory.done,
-            cfg.gamma,
-            cfg.gae_lambda,
+            cfg.ppo.gamma,
+            cfg.ppo.gae_lambda,
         )
         return dataclasses.replace(trajectory, advantages=advantages, returns=advantages + values)

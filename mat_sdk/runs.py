@@ -39,7 +39,7 @@ class RunRequest:
     algo: str = "mat"
     steps: int = 1_000_000
     out: Path | None = None  # default: runs/ENV-ALGO-sSEED
-    options: dict[str, Any] = field(default_factory=dict)  # TrainConfig fields
+    options: dict[str, Any] = field(default_factory=dict)  # training options (config.OPTIONS)
     given: list[str] = field(default_factory=list)  # the options the user chose
     resume: bool = False
     eval_every: int | None = None  # None: steps / 20 from EVAL_FROM_STEPS steps on, else off
@@ -72,7 +72,14 @@ class RunRequest:
         return {"env": self.env_ids[0], "more_envs": self.env_ids[1:], "algo": self.algo, **chosen}
 
     def to_json(self) -> str:
-        return json.dumps({**dataclasses.asdict(self), "out": str(self.out)})
+        """As JSON, the faults in their mapping form (`envs.as_mapping`)."""
+        from mat_sdk import envs
+
+        options = dict(self.options)
+        if "faults" in options:
+            options["faults"] = envs.as_mapping(envs.faults_of(options["faults"]))
+        asked = dataclasses.replace(self, options=options)
+        return json.dumps({**dataclasses.asdict(asked), "out": str(self.out)})
 
     @classmethod
     def from_json(cls, text: str) -> RunRequest:
@@ -157,7 +164,7 @@ def start(request: RunRequest, say: Say = print) -> Trainer:
         say(note)
     planned = trainer.planned_steps(request.steps)
     if planned != request.steps:
-        per_update = trainer.config.num_envs * trainer.config.rollout_length
+        per_update = trainer.config.ppo.steps_per_update
         say(
             f"--steps {request.steps:,}: training runs whole updates of {per_update:,} env "
             f"steps (num_envs x rollout_length), so this run ends at {planned:,} steps"

@@ -1,4 +1,4 @@
-"""PPO training of MAT (and MAT-Dec / MAPPO) on vectorised multi-agent envs.
+"""PPO training of MAT (and MAT-Dec, MAPPO, HAPPO) on vectorised multi-agent envs.
 
     trainer = Trainer("cheetah-6x1", algo="mat", out_dir="runs/cheetah")
     trainer.learn(200_000)
@@ -15,14 +15,13 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import asdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from mat_sdk import checkpoint, envs, files, happo, ppo
+from mat_sdk import checkpoint, envs, files, happo, joint_update
 from mat_sdk.checkpoint import CHECKPOINT_NAME
 from mat_sdk.config import TrainConfig
 from mat_sdk.envs import Env
@@ -31,6 +30,7 @@ from mat_sdk.flat_params import flat_adam
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.model import ModelConfig, PolicyNetwork, build_policy, check_fits
 from mat_sdk.normalization import RunningMeanStd, ValueNorm
+from mat_sdk.ppo import Rows
 from mat_sdk.rollout import RolloutCollector, Trajectory
 from mat_sdk.run_log import ProgressBar, RunLog, update_metrics
 
@@ -54,54 +54,29 @@ class Trainer:
         one). The checkpoint records the id; a spec's id is known only in this process, a
         module-level function's `module:function` id everywhere. A task that declares a
         training recipe (`envs.TrainingRecipe`) trains with it; `options` override it."""
-        env_id = envs.id_of(env)
-        recipe = envs.recipe_of(env_id)
-        task = {k: v for k, v in recipe.settings().items() if k not in options} if recipe else {}
-        self.config = TrainConfig.for_algo(algo, env=env_id, **task, **options)
-        cfg = self.config
-        self.notes: list[str] = []  # decisions taken for the user, in words
-        if task:
-            settings = ", ".join(f"{k}={v}" for k, v in task.items())
-            self.notes.append(f"{cfg.env} trains with its task's recipe: {settings}")
+        # and the decisions taken for the user, in words
+        cfg, self.notes = TrainConfig.for_task(envs.id_of(env), algo, **options)
         self.resumed_with: dict[str, Any] = {}  # how-to-run changes of a resume (`load`)
-        identity = envs.family_identity(cfg.env, cfg.env_options)
-        if identity != cfg.env_options:
-            cfg.env_options = identity
-            self.notes.append(
-                f"{cfg.env} is a family: agents observe position={envs.FAMILY_IDENTITY!r} "
-                "(whether an agent is at an end of the chain, docs/TRANSFER.md); "
-                'env_options={"position": null} for none'
-            )
-        self.device = cfg.resolve_device()
-        torch.manual_seed(cfg.seed)
-        cfg.configure_torch()
+        self.config = cfg
+        self.device = cfg.run.resolve_device()
+        torch.manual_seed(cfg.run.seed)
+        cfg.run.configure_torch()
         self._remote = None
-        if cfg.ray is not None:
+        if cfg.run.ray is not None:
             from mat_sdk.ray_rollouts import RayRollouts
 
             self._remote = RayRollouts(cfg)
-        if cfg.more_envs and self._remote is not None:
-            raise ValueError("training on several env ids is not offered with Ray yet")
-        # with Ray, one local copy: the env's shapes and names
-        self.envs = [cfg.make_envs(1, 0)] if self._remote else []
-        try:
-            for env_id in cfg.env_ids[len(self.envs) :]:
-                self.envs.append(cfg.make_envs(env_id=env_id))
-            first = cfg.model_config(self.envs[0])  # one policy must fit every env
-            for vec in self.envs[1:]:
-                check_fits(first, vec, vec.env_id)
-        except BaseException:
-            for env in self.envs:
-                env.close()
-            raise
+        self.envs = cfg.training_envs(shapes_only=self._remote is not None)
         self.env = self.envs[0]  # the shapes and names: the first env's
         if self.env.reward_terms and not cfg.init_from:  # warn before training, not after
-            self.notes += check_reward(cfg.env, cfg.faults, cfg.seed, cfg.env_options)
+            env = cfg.env
+            self.notes += check_reward(env.id, env.faults, cfg.run.seed, env.options)
         self.model_config = cfg.model_config(self.env)
         self.policy: PolicyNetwork = build_policy(self.model_config).to(self.device)
         self.build_optimizer()
+        compile_mode = "default" if cfg.run.compile else None
         self.gradients = MinibatchGradients(
-            self.policy, self.params, cfg, cfg.update_workers, "default" if cfg.compile else None
+            self.policy, self.params, cfg, cfg.run.update_workers, compile_mode
         )
         self.value_norm = ValueNorm(device=self.device)
         first = RolloutCollector(self.env, self.policy, cfg, self.device)
@@ -115,10 +90,11 @@ class Trainer:
     def build_optimizer(self) -> None:
         """Adam over the policy's parameters, laid out flat (`FlatParameters`); MAPPO's
         critic gets its own learning rate when `critic_lr` is set."""
-        critic = getattr(self.policy, "critic", None) if self.config.critic_lr else None
+        ppo_config = self.config.ppo
+        critic = getattr(self.policy, "critic", None) if ppo_config.critic_lr else None
         actors = list(self.policy.actors) if self.model_config.algorithm.actor_per_agent else None
         self.params, self.optimizer = flat_adam(
-            self.policy, self.config.lr, self.config.adam_eps, critic, self.config.critic_lr,
+            self.policy, ppo_config.lr, ppo_config.adam_eps, critic, ppo_config.critic_lr,
             parts=actors,
         )  # fmt: skip
 
@@ -152,14 +128,12 @@ class Trainer:
         Checkpoints go to `out_dir/checkpoint.pt` every `checkpoint_every` updates and at the end.
         `out_dir` is locked meanwhile (`files.RunLock`): another run there is refused.
         """
-        cfg = self.config
-        cfg.check_batching()  # refused before the first rollout
         with files.RunLock(self.out_dir) if self.out_dir else contextlib.nullcontext():
             return self._learn(total_steps, callback, progress_bar)
 
     def _learn(self, total_steps: int, callback, progress_bar: bool) -> Trainer:
-        cfg = self.config
-        per_update = cfg.num_envs * cfg.rollout_length
+        per_update = self.config.ppo.steps_per_update
+        checkpoint_every = self.config.run.checkpoint_every
         self.gradients.start()  # the update workers start up during the first rollout
         log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
         done = self.progress["steps"]
@@ -180,7 +154,7 @@ class Trainer:
                 )  # fmt: skip
                 if log:
                     log.write(metrics)
-                if self.out_dir and self.progress["updates"] % cfg.checkpoint_every == 0:
+                if self.out_dir and self.progress["updates"] % checkpoint_every == 0:
                     self.save(self.out_dir / CHECKPOINT_NAME)
                 bar.show(metrics, per_update)
                 if callback is not None and callback(self, metrics) is False:
@@ -196,7 +170,7 @@ class Trainer:
     def planned_steps(self, total_steps: int) -> int:
         """The env steps `learn(total_steps)` ends at: training runs whole updates of
         num_envs x rollout_length steps, so it may go past `total_steps`."""
-        per_update = self.config.num_envs * self.config.rollout_length
+        per_update = self.config.ppo.steps_per_update
         done = self.progress["steps"]
         return done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
 
@@ -212,68 +186,37 @@ class Trainer:
         return self.collector.advantages(trajectory, self.value_norm)
 
     def _update(self, trajectory: Trajectory) -> dict[str, float]:
-        cfg = self.config
-        rows = trajectory.rows(cfg.advantage_std_floor)
-        if self.model_config.algorithm.sequential_update:  # agents in turn (mat_sdk.happo)
+        """One update (`joint_update`, or HAPPO's agents in turn), refused if it diverged."""
+        ppo_config, generator = self.config.ppo, self.collector.shuffle_generator
+        rows = trajectory.rows(ppo_config.advantage_std_floor)
+        if self.model_config.algorithm.sequential_update:
             losses, finite = happo.update(
-                self.policy, self.params, self.optimizer, self.value_norm, rows, cfg,
-                self.collector.shuffle_generator,
+                self.policy, self.params, self.optimizer, self.value_norm, rows, ppo_config,
+                generator,
             )  # fmt: skip
-            self._check_finite(finite)
-            return losses
-        self.gradients.share(rows)
-        # Accumulate on the device and read once per update: no host sync per minibatch.
-        sums = dict.fromkeys(
-            ("policy_loss", "value_loss", "entropy", "clip_fraction", "grad_norm"), 0.0
-        )
-        finite = torch.ones((), dtype=torch.bool, device=self.device)
-        count = 0
-        for idx in self.minibatches(rows["obs"].shape[0]):
-            terms, grad_norm = self.optimizer_step(rows, idx)
-            finite &= torch.isfinite(terms.total)
-            for key, value in (
-                ("policy_loss", terms.policy),
-                ("value_loss", terms.value),
-                ("entropy", terms.entropy),
-                ("clip_fraction", terms.clip_fraction),
-                ("grad_norm", grad_norm),
-            ):
-                sums[key] = sums[key] + value.detach()
-            count += 1
-        self._check_finite(bool(finite))
-        return {key: float(value) / count for key, value in sums.items()}
+        else:
+            losses, finite = joint_update.update(
+                self.params, self.optimizer, self.value_norm, self.gradients, rows, ppo_config,
+                generator,
+            )  # fmt: skip
+        if not finite:
+            raise TrainingDiverged(
+                f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
+                "the last good checkpoint is kept"
+            )
+        return losses
 
     def _action_std(self) -> dict[str, float]:
         """The policy's mean action std (continuous actions): how much it still explores."""
         std = self.policy.std()
         return {} if std is None else {"action_std": float(std.detach().mean())}
 
-    def _check_finite(self, finite: bool) -> None:
-        if not finite:
-            raise TrainingDiverged(
-                f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
-                "the last good checkpoint is kept"
-            )
-
-    def minibatches(self, size: int) -> Iterator[torch.Tensor]:
-        """The row indices of each optimizer step of an update over `size` rows, shuffled
-        from the run's own stream (`ppo.minibatches`)."""
-        cfg = self.config
-        return ppo.minibatches(
-            size, cfg.ppo_epochs, cfg.num_minibatches, self.collector.shuffle_generator,
-            self.device,
+    def optimizer_step(self, rows: Rows, idx: torch.Tensor):
+        """One PPO step on the minibatch `idx` of `rows` (`joint_update.optimizer_step`)."""
+        return joint_update.optimizer_step(
+            self.params, self.optimizer, self.value_norm, self.gradients, rows, idx,
+            self.config.ppo.max_grad_norm,
         )  # fmt: skip
-
-    def optimizer_step(self, rows: dict[str, torch.Tensor], idx: torch.Tensor):
-        """One PPO step on the minibatch `idx` of the update's `rows` (already
-        shared with `self.gradients`); its loss terms and gradient norm before clipping."""
-        returns = rows["returns"][idx]
-        self.value_norm.update(returns)
-        self.params.zero_grad()
-        terms = self.gradients.backward(idx, self.value_norm.normalize(returns))
-        grad_norm = self.params.clip_grad_norm_(self.config.max_grad_norm)
-        self.optimizer.step()
-        return terms, grad_norm
 
     # ------------------------------------------------------------ checkpoints
     def state_payload(self) -> dict[str, Any]:
@@ -299,7 +242,7 @@ class Trainer:
         """Rebuild a trainer from a checkpoint; `learn` then continues exactly where it stopped.
 
         Overrides may change how to run (device, workers, update_workers,
-        checkpoint_every); any other TrainConfig field given must be the checkpoint's own
+        checkpoint_every); any other training option given must be the checkpoint's own
         (`checkpoint.training_options`). `resumed_with` holds what changed.
         A `module:function` env id the checkpoint records is imported only when the caller
         names that same id (`env=`, `more_envs=`: typed by the user in this process) or with
@@ -307,9 +250,9 @@ class Trainer:
         """
         payload = checkpoint.load(path)
         train, changed = checkpoint.training_options(payload, path, overrides)
-        named = [overrides["env"]] if "env" in overrides else []  # equal to the recorded ones
-        named += list(overrides.get("more_envs", []))
-        recorded = [train["env"], *train.get("more_envs", [])]
+        named = [overrides[key] for key in ("env",) if key in overrides]  # the caller's own
+        named += list(overrides.get("more_envs", ()))
+        recorded = [train["env"], *train["more_envs"]]
         envs.check_trusted(recorded, trust_env_code, str(path), named=named)
         if envs.is_family(train["env"]):  # trained without an identity: keep it so
             train["env_options"] = {"position": None, **train["env_options"]}
@@ -319,7 +262,7 @@ class Trainer:
             trainer.progress = checkpoint.restore_training(
                 payload, path, policy=trainer.policy, params=trainer.params,
                 optimizer=trainer.optimizer, collectors=trainer.collectors,
-                value_norm=trainer.value_norm, seed=trainer.config.seed,
+                value_norm=trainer.value_norm, seed=trainer.config.run.seed,
             )  # fmt: skip
         except BaseException:
             trainer.close()
@@ -331,7 +274,7 @@ class Trainer:
         cls,
         checkpoint_path: str | Path,
         env: Env | None = None,
-        faults: dict[str, str] | None = None,
+        faults: envs.FaultsLike = None,
         reset_optimizer: bool = True,
         lr: float | None = None,
         out_dir: str | Path | None = None,
@@ -343,32 +286,25 @@ class Trainer:
 
         Takes the checkpoint's weights, model size, observation normaliser, value
         normaliser and hyperparameters; `env`, `faults`, `lr` and `options` (any
-        TrainConfig field, e.g. num_envs, seed) change what is trained on and how. Step
+        training option, e.g. num_envs, seed) change what is trained on and how. Step
         counts start from 0. `reset_optimizer=False` keeps the Adam moments too;
         `action_std` sets a continuous policy's action std afresh (`PolicyNetwork.reset_std`).
 
         The changed robot must give the same observation and action sizes (a removed agent
-        keeps its team-mates' one-hot ids, so those stay the same; `swimmer-N` has no ids, so
-        any length works); MAPPO's centralised critic also fixes the agent count.
-        Without `env`, a `module:function` id the checkpoint records is imported only with
-        `trust_env_code=True`.
+        keeps its team-mates' one-hot ids; `swimmer-N` has none, so any length works); a
+        centralised critic also fixes the agent count. Without `env`, a `module:function` id
+        the checkpoint records is imported only with `trust_env_code=True`.
         """
         payload = checkpoint.load(checkpoint_path)
-        train = checkpoint.recorded_training(payload)
-        model = payload["config"]["model"]
-        train.update({key: model[key] for key in ("n_embd", "n_head", "n_block")})
-        train["attention_window"] = model.get("attention_window")  # absent before windows
-        train.update(faults=dict(faults or {}), init_from=str(checkpoint_path), more_envs=[])
-        train.update(options)
-        if lr is not None:
-            train["lr"] = lr
+        changes = {**options, "faults": faults, **({} if lr is None else {"lr": lr})}
+        train = checkpoint.pretrained_options(payload, checkpoint_path, changes)
         algo, trained_env = train.pop("algo"), train.pop("env")
         if env is None:
             envs.check_trusted([trained_env], trust_env_code, str(checkpoint_path))
         env = trained_env if env is None else envs.id_of(env)
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:
-            check_fits(ModelConfig.from_dict(model), trainer.env, env)
+            check_fits(ModelConfig.from_dict(payload["config"]["model"]), trainer.env, env)
             keep = (
                 {}
                 if reset_optimizer
@@ -376,7 +312,7 @@ class Trainer:
             )
             checkpoint.restore_pretrained(
                 payload, checkpoint_path, policy=trainer.policy, obs_norm=trainer.obs_norm,
-                value_norm=trainer.value_norm, lr=trainer.config.lr, **keep,
+                value_norm=trainer.value_norm, lr=trainer.config.ppo.lr, **keep,
             )  # fmt: skip
             if action_std is not None:
                 trainer.policy.reset_std(action_std)
@@ -390,15 +326,15 @@ class Trainer:
         from mat_sdk.evaluation import evaluate
 
         # this run's own env, named to it: nothing read from a file
-        loaded = self._as_loaded()
-        return evaluate(loaded, episodes, env_id=self.config.env, deterministic=deterministic)
+        env_id = self.config.env.id
+        return evaluate(self._as_loaded(), episodes, env_id=env_id, deterministic=deterministic)
 
     def _as_loaded(self):
         """This trainer's policy as `mat eval` sees a checkpoint: weights + obs normaliser."""
         from mat_sdk.evaluation import CheckpointPolicy
 
-        norm = self.obs_norm if self.config.normalize_obs else None
-        return CheckpointPolicy(self.policy, norm, {"train": asdict(self.config)})
+        norm = self.obs_norm if self.config.ppo.normalize_obs else None
+        return CheckpointPolicy(self.policy, norm, self.config)
 
     def close(self) -> None:
         for env in self.envs:

@@ -24,7 +24,6 @@ given the chosen settings on the command line.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -32,7 +31,7 @@ from typing import Any
 
 import torch
 
-from mat_sdk.config import TrainConfig
+from mat_sdk.config import PPOConfig, TrainConfig
 from mat_sdk.files import write_text_atomic
 from mat_sdk.gradients import MinibatchGradients
 from mat_sdk.normalization import ValueNorm
@@ -71,7 +70,7 @@ def twin(
     levers (`compile_mode`: torch.compile's mode for the loss, None for eager); its update
     workers get the config with `config_changes`."""
     copied = copy.copy(trainer)
-    copied.config = dataclasses.replace(trainer.config, **config_changes)
+    copied.config = trainer.config.with_options(**config_changes)
     copied.policy = copy.deepcopy(trainer.policy)
     copied.build_optimizer()
     copied.value_norm = ValueNorm(device=trainer.device)
@@ -87,7 +86,7 @@ def _epoch(trainer: Trainer, batch, minibatches) -> Callable[[], None]:
     config has it (the mode is process-wide, and the candidates take turns)."""
 
     def run() -> None:
-        torch.set_flush_denormal(trainer.config.flush_denormal)
+        torch.set_flush_denormal(trainer.config.run.flush_denormal)
         for idx in minibatches:
             trainer.optimizer_step(batch, idx)
 
@@ -160,7 +159,7 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
     cores the run's env and update workers may use beyond its own. -> (the chosen settings,
     a table of every candidate measured, round by round: each round's figures are comparable
     among themselves). A run on Ray keeps its rollout settings (its workers are Ray's)."""
-    defaults = {name: getattr(TrainConfig, name) for name in TUNED}
+    defaults = {name: TrainConfig().options()[name] for name in TUNED}
     if config.get("ray"):
         fixed = {**fixed, **{name: config.get(name, defaults[name]) for name in ROLLOUT}}
     base = {**defaults, **fixed}
@@ -170,12 +169,10 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
     # the update is measured on one rollout collected here, whatever the run's rollout
     trainer = Trainer(config["env"], config["algo"], **options, workers=0, ray=None)
     try:
-        trainer.config.check_batching()  # as the run would refuse it, before any work
-        batch = trainer.rollout().rows(trainer.config.advantage_std_floor)
-        rows = batch["obs"].shape[0]
-        size = rows // trainer.config.num_minibatches
-        minibatches = [torch.arange(i * size, (i + 1) * size)
-                       for i in range(trainer.config.num_minibatches)]  # fmt: skip
+        batch = trainer.rollout().rows(trainer.config.ppo.advantage_std_floor)
+        rows, count = len(batch), trainer.config.ppo.num_minibatches
+        size = rows // count
+        minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(count)]
         measurements.update_on(trainer, batch, minibatches)
         chosen = base
         if "update_workers" not in fixed:
@@ -203,7 +200,7 @@ def _rollout_rounds(
 ) -> dict:
     """`base` with the env workers (none, or one per free core) and then the acting backend
     that collect the run's rollouts fastest, each candidate a trainer of its own."""
-    most = min(free_cores, options.get("num_envs", TrainConfig.num_envs) - 1)
+    most = min(free_cores, options.get("num_envs", PPOConfig.num_envs) - 1)
     races = []
     if "workers" not in fixed and most > 0:
         races.append(("workers", [0, most]))

@@ -73,8 +73,8 @@ def add(
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     source = run / "checkpoint.pt" if run.is_dir() else run
     payload = checkpoint.load(source)
-    train = payload["config"]["train"]
-    env_id = train["env"]
+    train = checkpoint.recorded_config(payload)
+    env_id = train.env.id
     envs.check_trusted([env_id], trust_env_code, str(source))
     target = zoo_dir() / name
     if target.exists() and not force:
@@ -90,17 +90,17 @@ def add(
         export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=trust_env_code)
         loaded = CheckpointPolicy.from_checkpoint(staging / "checkpoint.pt")
         returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=trust_env_code)
-        options = train.get("env_options") or {}
+        options = dict(train.env.options)
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
         card = {
             "name": name,
             "env_id": env_id,
-            "trained_on": [env_id, *train.get("more_envs", [])],
+            "trained_on": train.env.ids,
             "env_options": options,
-            "faults": train.get("faults") or {},
-            "algo": train["algo"],
+            "faults": envs.as_mapping(train.env.faults),
+            "algo": train.algo,
             "steps": payload["progress"]["steps"],
-            "seed": train["seed"],
+            "seed": train.run.seed,
             "return": {
                 "mean": float(np.mean(returns)),
                 "ci95": _interval(returns),

@@ -110,8 +110,11 @@ def test_an_error_in_the_users_own_function_names_it(tmp_path):
         ({None: "zero"}, "names an agent or joint by a non-empty string, got None"),
         ({3: "zero"}, "got 3"),
         ({("a",): "zero"}, r"got \('a',\)"),
-        (["bfoot"], "faults must map agent or joint names"),
+        (["bfoot"], r"faults must be envs.Fault values \(Fault.zero\(name\), ...\), got 'bfoot'"),
+        ("bfoot=zero", "faults are a list of envs.Fault"),
         ({"bfoot": "half"}, "mode must be one of"),
+        ({"bfoot": "weak:2"}, "strictly between 0 and 1"),
+        ([envs.Fault.zero("bfoot"), envs.Fault.weak("bfoot", 0.5)], "one fault per agent or joint"),
     ],
 )
 def test_fault_names_are_checked_before_mujoco_sees_them(faults, message):
@@ -139,12 +142,12 @@ def test_a_checkpoint_with_a_none_fault_is_refused_by_eval_and_resume(tmp_path):
     """Once a segfault (signal 11) in eval, export and --resume; now a one-line refusal."""
     good = make_checkpoint(tmp_path / "good.pt", "cheetah-2x3")
     payload = checkpoint.load(good)
-    payload["config"]["train"]["faults"] = {None: "zero"}
+    payload["config"]["train"]["env"]["faults"] = {None: "zero"}
     bad = checkpoint.save_atomic(payload, tmp_path / "bad.pt")
     for args in (["eval", str(bad), "--episodes", "1"], ["export", str(bad), "-o", "b"]):
         run = _mat(args, tmp_path)
         assert run.returncode == 1, run.stderr
-        assert "faults must be a mapping with string keys" in run.stderr
+        assert "a fault names an agent or joint by a non-empty string" in run.stderr
         assert "Traceback" not in run.stderr
 
 
@@ -451,3 +454,23 @@ def test_a_disk_that_fills_under_tensorboard_is_one_line_and_no_thread_traceback
     with trainer, pytest.raises(files.WriteFailed, match="no space left on device"):
         trainer.learn(2000, progress_bar=False)
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_faults_are_values_parsed_once_and_their_mapping_form_loads_the_same():
+    """`--fault` strings, the mapping form checkpoints store and `Fault` values are one thing;
+    the env acts on the typed list."""
+    from mat_sdk.faults import Fault, as_mapping, faults_of
+
+    typed = (Fault.zero("bfoot"), Fault.weak("fthigh", 0.5), Fault.remove("agent_2"))
+    parsed = tuple(
+        Fault.parse(text) for text in ("bfoot=zero", "fthigh=weak:0.5", "agent_2=remove")
+    )
+    assert parsed == typed == faults_of(as_mapping(typed))
+    assert [str(fault) for fault in typed] == ["bfoot=zero", "fthigh=weak:0.5", "agent_2=remove"]
+    with pytest.raises(
+        ValueError, match="'bfoot': a fault is NAME=zero, NAME=remove or NAME=weak:S"
+    ):
+        Fault.parse("bfoot")
+    team = envs.make_team("cheetah-6x1", [Fault.remove("agent_2")])
+    same = envs.make_team("cheetah-6x1", {"agent_2": "remove"})
+    assert team.faults == same.faults == (Fault.remove("agent_2"),) and team.n_agents == 5

@@ -41,28 +41,34 @@ EDITS = {
         lambda p: p["config"]["model"].update(n_embd="64"),
         "model n_embd must be an integer >= 1, got '64'",
     ),
-    "no env id": (lambda p: p["config"]["train"].pop("env"), "config.train.env must be a string"),
-    "a list env id": (lambda p: p["config"]["train"].update(env=["x"]), "config.train.env must be"),
+    "no env id": (
+        lambda p: p["config"]["train"]["env"].pop("id"),
+        "config.train.env.id must be a string",
+    ),
+    "a list env id": (
+        lambda p: p["config"]["train"]["env"].update(id=["x"]),
+        "config.train.env.id must be",
+    ),
     "no normaliser": (lambda p: p.pop("obs_norm"), "obs_norm must hold the tensors mean, var"),
     "bad progress": (lambda p: p.update(progress={"steps": -1}), "progress must hold"),
     "None fault": (  # a name MuJoCo's lookup would crash on
-        lambda p: p["config"]["train"].update(faults={None: "zero"}),
-        r"config.train is invalid \(faults must be a mapping with string keys",
+        lambda p: p["config"]["train"]["env"].update(faults={None: "zero"}),
+        r"config.train is invalid \(a fault names an agent or joint by a non-empty string",
     ),
     "int fault": (
-        lambda p: p["config"]["train"].update(faults={3: "zero"}),
-        r"config.train is invalid \(faults must be a mapping with string keys",
+        lambda p: p["config"]["train"]["env"].update(faults={3: "zero"}),
+        r"config.train is invalid \(a fault names an agent or joint by a non-empty string",
     ),
     "tuple fault": (
-        lambda p: p["config"]["train"].update(faults={("a",): "zero"}),
-        r"config.train is invalid \(faults must be a mapping with string keys",
+        lambda p: p["config"]["train"]["env"].update(faults={("a",): "zero"}),
+        r"config.train is invalid \(a fault names an agent or joint by a non-empty string",
     ),
     "list options": (
-        lambda p: p["config"]["train"].update(env_options=["x"]),
+        lambda p: p["config"]["train"]["env"].update(options=["x"]),
         r"config.train is invalid \(env_options must be a mapping",
     ),
     "seed option": (
-        lambda p: p["config"]["train"].update(env_options={"seed": "x"}),
+        lambda p: p["config"]["train"]["env"].update(options={"seed": "x"}),
         "env_options cannot set seed",
     ),
     "two env ids": (
@@ -70,8 +76,8 @@ EDITS = {
         r"config.env.id differs from config.train.env \('coordination-3'\)",
     ),
     "unknown field": (
-        lambda p: p["config"]["train"].update(colour="red"),
-        r"config.train has fields this SDK does not know \(\['colour'\]\)",
+        lambda p: p["config"]["train"]["ppo"].update(colour="red"),
+        r"config.train is invalid \(ppo has fields this SDK does not know \(\['colour'\]\)",
     ),
     "wrong weights": (
         lambda p: p["model"].update({"encoder.ln.weight": torch.zeros(3)}),

@@ -54,8 +54,8 @@ def test_user_mistakes_give_one_line_and_exit_code():
     result = CliRunner().invoke(main, ["rollout", "cheetah-6x1", "--fault", "bfoot"])
     assert result.exit_code != 0 and "NAME=zero, NAME=remove or NAME=weak:S" in result.output
     result = CliRunner().invoke(main, ["rollout", "cheetah-6x1", "--fault", "bfoot=weak:2"])
-    assert result.exit_code == 1 and "Traceback" not in result.output
-    assert "fault bfoot='weak:2': a weak motor keeps a fraction" in result.output
+    assert result.exit_code == 2 and "Traceback" not in result.output  # a usage error
+    assert "fault bfoot='weak:2': a weak motor keeps a share of its force strictly" in result.output
 
 
 TINY_TRAIN = [
@@ -79,9 +79,9 @@ def test_train_on_several_agent_counts_resume_and_eval_on_another(tmp_path):
     first = runner.invoke(main, ["train", *ids, "--steps", "40", "--out", str(out), *TINY_TRAIN])
     assert first.exit_code == 0, first.output
     train = checkpoint.load(out / "checkpoint.pt")["config"]["train"]
-    assert (train["env"], train["more_envs"]) == ("swimmer-4", ["swimmer-5"])
+    assert (train["env"]["id"], train["env"]["more"]) == ("swimmer-4", ["swimmer-5"])
     assert "swimmer-4 is a family: agents observe position='end-flags'" in first.output
-    assert train["env_options"]["position"] == "end-flags"  # the measured best identity
+    assert train["env"]["options"]["position"] == "end-flags"  # the measured best identity
     other = runner.invoke(main, ["train", "swimmer-4", "swimmer-7", "--out", str(out), "--resume"])
     assert other.exit_code != 0 and "more_envs=['swimmer-5']" in other.output
     resumed = runner.invoke(main, ["train", *ids, "--steps", "80", "--out", str(out), "--resume"])
@@ -328,9 +328,8 @@ def test_resume_applies_how_to_run_and_refuses_what_to_train(tmp_path):
 
 def test_trainer_and_mat_train_build_the_same_run_for_a_family(tmp_path):
     """The library decides the family identity where Trainer builds its env, so the Python API
-    and the command line train the same policy from the same id."""
-    from dataclasses import asdict
-
+    and the command line train the same policy from the same id, and record the same config
+    in their checkpoints."""
     from mat_sdk.trainer import Trainer
 
     result = CliRunner().invoke(
@@ -340,7 +339,9 @@ def test_trainer_and_mat_train_build_the_same_run_for_a_family(tmp_path):
     cli = checkpoint.load(tmp_path / "checkpoint.pt")["config"]["train"]
     options = {"num_envs": 4, "rollout_length": 10, "num_minibatches": 2, "ppo_epochs": 1}
     with Trainer("swimmer-4", env_options={"episode_limit": 20}, **options) as trainer:
-        api = asdict(trainer.config)
         assert trainer.notes and "is a family" in trainer.notes[0]
-    assert api["env_options"] == {"episode_limit": 20, "position": "end-flags"}
+        trainer.learn(40, progress_bar=False)
+        saved = trainer.save(tmp_path / "api.pt")
+    api = checkpoint.load(saved)["config"]["train"]
+    assert api["env"]["options"] == {"episode_limit": 20, "position": "end-flags"}
     assert api == cli

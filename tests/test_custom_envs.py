@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -175,14 +176,12 @@ def test_action_masks_reach_the_policy(factory):
     with Trainer(spec, "mat", num_envs=4, rollout_length=5, num_minibatches=1) as trainer:
         trajectory = trainer.rollout()
         rows = trajectory.rows()
-        log_prob, _, _ = trainer.policy.evaluate_actions(
-            rows["obs"], rows["actions"], rows["available"]
-        )
+        log_prob, _, _ = trainer.policy.evaluate_actions(rows.obs, rows.actions, rows.available)
     chosen = trajectory.actions[..., 0]  # [T, E, n]
     active = trajectory.active[..., 0] > 0
     last_choice = torch.tensor([1.0, 3.0, 2.0]).expand_as(chosen)
     assert torch.equal(chosen[active], last_choice[active])  # never a masked-out choice
-    assert torch.all(log_prob[rows["active"][..., 0] > 0] == 0)  # the loss sees one choice
+    assert torch.all(log_prob[rows.active[..., 0] > 0] == 0)  # the loss sees one choice
 
 
 def test_predict_takes_available_actions():
@@ -213,17 +212,17 @@ def _uneven_batch():
 
 def test_padded_dimensions_and_gone_agents_get_exactly_zero_gradient():
     trainer, rows = _uneven_batch()
-    assert {"active", "action_dims"} <= set(rows)
-    inactive = rows["active"][..., 0] == 0
+    assert rows.active is not None and rows.action_dims is not None
+    inactive = rows.active[..., 0] == 0
     assert inactive[:, 2].any() and not inactive[:, :2].any()  # only c ever leaves
-    log_prob, entropy, values = trainer.policy.evaluate_actions(rows["obs"], rows["actions"])
+    log_prob, entropy, values = trainer.policy.evaluate_actions(rows.obs, rows.actions)
     log_prob, entropy, values = (x.detach().requires_grad_() for x in (log_prob, entropy, values))
     terms = ppo_loss(
-        log_prob, rows["log_probs"], rows["advantages"], entropy, values, rows["values"],
-        rows["returns"], 0.2, 0.01, 1.0, 10.0, rows["active"], rows["action_dims"],
+        log_prob, rows.log_probs, rows.advantages, entropy, values, rows.values,
+        rows.returns, 0.2, 0.01, 1.0, 10.0, rows.active, rows.action_dims,
     )  # fmt: skip
     terms.total.backward()
-    padded = rows["action_dims"] == 0
+    padded = rows.action_dims == 0
     assert padded.any()
     for grad in (log_prob.grad, entropy.grad):
         assert torch.all(grad[padded] == 0)  # padding: exactly zero
@@ -234,22 +233,23 @@ def test_padded_dimensions_and_gone_agents_get_exactly_zero_gradient():
 
 def test_a_gone_agents_rows_change_nothing_in_the_loss():
     trainer, rows = _uneven_batch()
-    coefficients = LossCoefficients.of(trainer.config)
+    coefficients = LossCoefficients.of(trainer.config.ppo)
 
     def loss_and_gradient(batch):
         trainer.policy.zero_grad()
-        terms = minibatch_loss(trainer.policy, batch, batch["returns"], coefficients)
+        terms = minibatch_loss(trainer.policy, batch, batch.returns, coefficients)
         terms.total.backward()
         grads = [p.grad.clone() for p in trainer.policy.parameters() if p.grad is not None]
         return terms.total.detach(), grads
 
     base_loss, base_grads = loss_and_gradient(rows)
-    gone = rows["active"] == 0
-    changed = dict(rows)
-    for key in ("advantages", "returns", "values"):
-        changed[key] = torch.where(gone, torch.randn_like(rows[key]) * 100, rows[key])
-    changed["log_probs"] = torch.where(gone, rows["log_probs"] - 5, rows["log_probs"])
-    loss, grads = loss_and_gradient(changed)
+    gone = rows.active == 0
+    changed = {
+        key: torch.where(gone, torch.randn_like(getattr(rows, key)) * 100, getattr(rows, key))
+        for key in ("advantages", "returns", "values")
+    }
+    changed["log_probs"] = torch.where(gone, rows.log_probs - 5, rows.log_probs)
+    loss, grads = loss_and_gradient(dataclasses.replace(rows, **changed))
     assert torch.equal(loss, base_loss)
     assert all(torch.equal(g, h) for g, h in zip(grads, base_grads, strict=True))
 
@@ -359,9 +359,9 @@ def test_a_dm_control_suite_task_with_a_layout_of_its_own():
 
 def test_trainer_takes_a_spec_and_a_module_level_factory():
     with Trainer(my_robots.arm(), "mat", num_envs=2, rollout_length=4, num_minibatches=1) as t:
-        assert t.config.env == "mjcf:arm"
+        assert t.config.env.id == "mjcf:arm"
     with Trainer(my_robots.arm, "mat", num_envs=2, rollout_length=4, num_minibatches=1) as t:
-        assert t.config.env == "my_robots:arm"  # rebuildable in any process
+        assert t.config.env.id == "my_robots:arm"  # rebuildable in any process
         t.learn(8, progress_bar=False)
 
 

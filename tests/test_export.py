@@ -194,7 +194,7 @@ def test_force_replaces_only_a_bundle_of_its_own_files(mat_checkpoint, mat_bundl
 
 def test_a_checkpoint_of_an_unknown_env_exports_nothing(mat_checkpoint, tmp_path):
     payload = checkpoint.load(mat_checkpoint)
-    payload["config"]["train"]["env"] = "cheetah-9x9"
+    payload["config"]["train"]["env"]["id"] = "cheetah-9x9"
     strange = checkpoint.save_atomic(payload, tmp_path / "strange.pt")
     with pytest.raises(ExportError, match="trained on env 'cheetah-9x9', which cannot be made"):
         export(strange, tmp_path / "out")

@@ -140,8 +140,8 @@ def test_the_task_recipe_is_what_mat_train_and_trainer_use_unless_overridden():
     recipe = WALK.recipe.settings()
     with Trainer("quadrupeds:a1", num_envs=2, rollout_length=5) as trainer:
         config = trainer.config
-        assert (config.num_envs, config.rollout_length) == (2, 5)  # the caller's
-        assert config.lr == recipe["lr"] and config.entropy_coef == recipe["entropy_coef"]
+        assert (config.ppo.num_envs, config.ppo.rollout_length) == (2, 5)  # the caller's
+        assert config.ppo.lr == recipe["lr"] and config.ppo.entropy_coef == recipe["entropy_coef"]
     request = RunRequest(["quadrupeds:a1"], options={"num_envs": 8, "lr": 1e-3}, given=["lr"])
     chosen = with_task_recipe(request)
     assert chosen.options["num_envs"] == recipe["num_envs"]  # a CLI default gives way

@@ -54,7 +54,10 @@ def test_a_seed_set_writes_one_ordinary_run_per_seed(tmp_path):
         directory = tmp_path / f"seed_{seed}"
         assert (directory / DONE_NAME).exists() and (directory / "best.pt").exists()
         payload = checkpoint.load(directory / "checkpoint.pt")
-        assert payload["config"]["train"]["seed"] == seed and payload["progress"]["steps"] == 100
+        assert (
+            payload["config"]["train"]["run"]["seed"] == seed
+            and payload["progress"]["steps"] == 100
+        )
     evaluations = read_evaluations([tmp_path])["mat_sdk"]["coordination-3"]["mat"]
     assert set(evaluations) == {"seed_0", "seed_1"}
 

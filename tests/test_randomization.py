@@ -193,7 +193,7 @@ def test_a_randomized_training_run_resumes_exactly_and_records_its_randomization
         trainer.learn(80, progress_bar=False)
         straight = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
     with Trainer.load(tmp_path / "half.pt", out_dir=tmp_path / "b", trust_env_code=True) as again:
-        assert again.config.env_options["randomize"]["latency"] == [0, 2]
+        assert again.config.env.options["randomize"]["latency"] == [0, 2]
         again.learn(80, progress_bar=False)
         for name, value in again.policy.state_dict().items():
             assert np.array_equal(value.numpy(), straight[name].numpy()), name

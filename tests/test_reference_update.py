@@ -7,6 +7,7 @@ import torch
 
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
 from mat_sdk.normalization import ValueNorm
+from mat_sdk.ppo import Rows
 from mat_sdk.trainer import Trainer
 
 
@@ -17,18 +18,18 @@ def test_losses_and_gradients_equal_the_official_style_reference(update_workers)
     ) as trainer:
         trajectory = trainer.rollout()
         names = ("obs", "actions", "log_probs", "values", "advantages", "returns")
-        mb = {name: getattr(trajectory, name).flatten(0, 1)[:50] for name in names}
+        mb = Rows(**{name: getattr(trajectory, name).flatten(0, 1)[:50] for name in names})
         with torch.no_grad():  # trained-like weights: unit-gain layers and a moved policy
             for p in trainer.policy.parameters():
                 p.add_(0.05 * torch.randn_like(p))
-            mb["actions"] += 0.3 * torch.randn_like(mb["actions"])
+            mb.actions.add_(0.3 * torch.randn_like(mb.actions))
         reference = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents)
 
         ours_norm, ref_norm = ValueNorm(), ValueNorm()
-        ours_norm.update(mb["returns"])
+        ours_norm.update(mb.returns)
         trainer.gradients.share(mb)  # the trainer's own path: split over processes or not
-        ours = trainer.gradients.backward(torch.arange(50), ours_norm.normalize(mb["returns"]))
-        theirs = official_loss(reference, ref_norm, mb, trainer.config)
+        ours = trainer.gradients.backward(torch.arange(50), ours_norm.normalize(mb.returns))
+        theirs = official_loss(reference, ref_norm, mb, trainer.config.ppo)
         ours_value, theirs_value = float(ours.total.detach()), float(theirs.detach())
         assert abs(ours_value - theirs_value) <= 1e-5 * max(1.0, abs(theirs_value))
 
@@ -45,7 +46,9 @@ def test_losses_and_gradients_equal_the_official_style_reference(update_workers)
 
 def test_official_style_action_loop_matches_our_cached_decode():
     """`mat bench runtime`'s baseline chooses the actions our policy chooses."""
-    with Trainer("cheetah-6x1", "mat", num_envs=1, rollout_length=1, seed=0) as trainer:
+    with Trainer(
+        "cheetah-6x1", "mat", num_envs=1, rollout_length=1, num_minibatches=1, seed=0
+    ) as trainer:
         policy = trainer.policy.eval()
     with torch.no_grad():
         for p in policy.parameters():

@@ -304,13 +304,12 @@ def test_bad_input_gives_clear_errors(tmp_path):
         ({"recipe": "quick"}, "recipe must be one of paper, fast, got 'quick'"),
     ):
         with pytest.raises(ValueError, match=message):
-            TrainConfig(**option)
-    accepted = TrainConfig(seed=np.int64(3), lr=np.float32(1e-4))  # numpy scalars are fine
-    assert type(accepted.seed) is int and type(accepted.lr) is float  # (weights_only loads)
-    with Trainer("coordination-3", "mat", recipe="paper", num_envs=2, rollout_length=5) as trainer:
-        with pytest.raises(ValueError, match="num_minibatches 40 > env-steps per update 10"):
-            trainer.learn(1_000)
-        assert trainer.progress["steps"] == 0  # refused before any rollout
+            TrainConfig.from_options(option)
+    # numpy scalars are fine, and become Python numbers (weights_only loads)
+    accepted = TrainConfig.from_options({"seed": np.int64(3), "lr": np.float32(1e-4)})
+    assert type(accepted.run.seed) is int and type(accepted.ppo.lr) is float
+    with pytest.raises(ValueError, match="num_minibatches 40 > env-steps per update 10"):
+        Trainer("coordination-3", "mat", recipe="paper", num_envs=2, rollout_length=5)
     not_a_checkpoint = tmp_path / "notes.pt"
     not_a_checkpoint.write_text("hello")
     with pytest.raises(checkpoint.CheckpointError, match="is not a MAT checkpoint .not a torch"):
@@ -402,15 +401,12 @@ def test_recipes_set_the_update_and_are_recorded(tmp_path):
     """`fast` (the default) and `paper` set the update's shape; options override either; the
     checkpoint records the recipe, and one from before recipes resumes as the paper's."""
     fast, paper = TrainConfig.for_algo("mat"), TrainConfig.for_algo("mat", "paper")
-    assert (fast.recipe, fast.lr, fast.ppo_epochs, fast.num_minibatches) == ("fast", 3e-4, 5, 4)
-    assert (paper.recipe, paper.lr, paper.ppo_epochs, paper.num_minibatches) == (
-        "paper",
-        5e-5,
-        10,
-        40,
-    )
-    assert TrainConfig.for_algo("mat", "fast", lr=1e-3).lr == 1e-3
-    mappo = TrainConfig.for_algo("mappo", "fast")  # not measured yet: the paper's settings
+    assert fast == TrainConfig()  # one default: the "fast" recipe
+    for config, shape in ((fast, ("fast", 3e-4, 5, 4)), (paper, ("paper", 5e-5, 10, 40))):
+        ppo = config.ppo
+        assert (config.recipe, ppo.lr, ppo.ppo_epochs, ppo.num_minibatches) == shape
+    assert TrainConfig.for_algo("mat", "fast", lr=1e-3).ppo.lr == 1e-3
+    mappo = TrainConfig.for_algo("mappo", "fast").ppo  # not measured yet: the paper's settings
     assert (mappo.lr, mappo.critic_lr, mappo.num_minibatches) == (5e-6, 5e-3, 40)
     with Trainer("coordination-3", "mat", num_envs=4, rollout_length=5) as trainer:
         trainer.learn(20, progress_bar=False)
@@ -420,7 +416,7 @@ def test_recipes_set_the_update_and_are_recorded(tmp_path):
     assert "recipe" not in old["config"]["train"]  # written before recipes existed
     with Trainer.load(DATA / "mat-coordination3-5510455.pt") as resumed:
         assert resumed.config.recipe == "paper"
-        assert resumed.config.lr == old["config"]["train"]["lr"]
+        assert resumed.config.ppo.lr == old["config"]["train"]["lr"]  # the flat layout
 
 
 def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratios():
@@ -435,7 +431,7 @@ def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratio
 
     options = {**TINY, "ppo_epochs": 1, "num_minibatches": 1, "lr": 3e-2, "critic_lr": 1e-2}
     with Trainer("hopper-4x1", "happo", **options) as trainer:
-        cfg, policy = trainer.config, trainer.policy
+        cfg, policy = trainer.config.ppo, trainer.policy
         rows = trainer.rollout().rows(cfg.advantage_std_floor)
         reference, value_norm = copy.deepcopy(policy), copy.deepcopy(trainer.value_norm)
         generator = torch.Generator().set_state(trainer.collector.shuffle_generator.get_state())
@@ -451,11 +447,11 @@ def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratio
         torch.nn.utils.clip_grad_norm_(module.parameters(), cfg.max_grad_norm)
         optimizer.step()
 
-    size = rows["obs"].shape[0]
+    size = len(rows)
     torch.randperm(size, generator=generator)  # the critic's minibatch order
-    value_norm.update(rows["returns"])
+    value_norm.update(rows.returns)
     loss = value_loss(
-        reference.values(rows["obs"]), rows["values"], value_norm.normalize(rows["returns"]),
+        reference.values(rows.obs), rows.values, value_norm.normalize(rows.returns),
         cfg.clip, cfg.huber_delta,
     )  # fmt: skip
     adam_step(reference.critic, loss, cfg.critic_lr)
@@ -464,15 +460,15 @@ def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratio
     assert sorted(order) == [0, 1, 2, 3]
     for agent in order:
         torch.randperm(size, generator=generator)  # this agent's minibatch order
-        log_prob, entropy = reference.agent_log_prob(agent, rows["obs"], rows["actions"])
-        ratio = torch.exp((log_prob - rows["log_probs"][:, agent]).sum(-1, keepdim=True))
-        advantages = factor * rows["advantages"][:, agent]
+        log_prob, entropy = reference.agent_log_prob(agent, rows.obs, rows.actions)
+        ratio = torch.exp((log_prob - rows.log_probs[:, agent]).sum(-1, keepdim=True))
+        advantages = factor * rows.advantages[:, agent]
         clipped = ratio.clamp(1 - cfg.clip, 1 + cfg.clip)
         surrogate = torch.min(ratio * advantages, clipped * advantages).mean()
         adam_step(reference.actors[agent], -surrogate - cfg.entropy_coef * entropy.mean(), cfg.lr)
         with torch.no_grad():
-            log_prob, _ = reference.agent_log_prob(agent, rows["obs"], rows["actions"])
-            factor = factor * torch.exp((log_prob - rows["log_probs"][:, agent]).sum(-1, True))
+            log_prob, _ = reference.agent_log_prob(agent, rows.obs, rows.actions)
+            factor = factor * torch.exp((log_prob - rows.log_probs[:, agent]).sum(-1, True))
     assert not torch.allclose(factor, torch.ones_like(factor))  # the weighting is exercised
     for (name, ours), theirs in zip(
         policy.state_dict().items(), reference.state_dict().values(), strict=True

@@ -64,7 +64,7 @@ def planted(tmp_path_factory):
     manifest["env_id"] = HOSTILE
     (root / "bundle" / "manifest.json").write_text(json.dumps(manifest))
     payload = torch.load(honest, weights_only=True)
-    payload["config"]["train"]["env"] = HOSTILE
+    payload["config"]["train"]["env"]["id"] = HOSTILE
     checkpoint.save_atomic(payload, root / "hostile.pt")
     return root
 
@@ -177,7 +177,7 @@ def test_even_a_trusted_id_must_name_a_plain_function_outside_the_standard_libra
 
 def test_a_stdlib_id_in_a_checkpoint_is_refused_even_when_trusted(planted, tmp_path):
     payload = torch.load(planted / "honest.pt", weights_only=True)
-    payload["config"]["train"]["env"] = "os:abort"
+    payload["config"]["train"]["env"]["id"] = "os:abort"
     checkpoint.save_atomic(payload, tmp_path / "abort.pt")
     run = _run(["eval", str(tmp_path / "abort.pt"), "--trust-env-code"], tmp_path)
     assert run.returncode == 1 and "standard library module 'os'" in run.stderr, run.stderr
@@ -205,7 +205,7 @@ def test_a_trusted_id_never_walks_attributes_into_other_modules(planted, tmp_pat
     """With the opt-in, the part after the colon is one function defined in that module: a
     recorded `module:other_module.function` is refused before anything is called."""
     payload = torch.load(planted / "honest.pt", weights_only=True)
-    payload["config"]["train"]["env"] = "mat_sdk.zoo:tempfile.mkdtemp"
+    payload["config"]["train"]["env"]["id"] = "mat_sdk.zoo:tempfile.mkdtemp"
     checkpoint.save_atomic(payload, tmp_path / "walk.pt")
     run = _run(["eval", str(tmp_path / "walk.pt"), "--trust-env-code"], tmp_path)
     assert run.returncode == 1 and "no dots" in run.stderr and "Traceback" not in run.stderr
@@ -243,7 +243,7 @@ def test_a_resumed_finetune_does_not_trust_the_envs_its_checkpoint_adds(planted,
              num_envs=2, rollout_length=10, ppo_epochs=1, num_minibatches=1,
              progress_bar=False)  # fmt: skip
     payload = torch.load(out / "checkpoint.pt", weights_only=True)
-    payload["config"]["train"]["more_envs"] = [HOSTILE]
+    payload["config"]["train"]["env"]["more"] = [HOSTILE]
     checkpoint.save_atomic(payload, out / "checkpoint.pt")
     with pytest.raises(UntrustedEnvError, match="records the env id 'planted:make'"):
         finetune(planted / "honest.pt", "hopper-2x2", steps=40, out_dir=out, resume=True,

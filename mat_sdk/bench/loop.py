@@ -100,8 +100,8 @@ def main(env_id: str = "go2:walk", updates: int = 3, rounds: int = 3) -> None:
         for label, settings in variants(usable_cores()).items():
             trainers[label] = Trainer(env_id, "mat", **settings)
         first = next(iter(trainers.values()))
-        per_update = first.config.num_envs * first.config.rollout_length
-        _env_table(env_id, first.config.num_envs, rounds)
+        per_update = first.config.ppo.steps_per_update
+        _env_table(env_id, first.config.ppo.num_envs, rounds)
         waits = {label: _Waits(trainer) for label, trainer in trainers.items()}
         times: dict[str, list[dict]] = {label: [] for label in trainers}
         for trainer in trainers.values():  # warm-up: workers, ONNX graphs, the compile

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mat_sdk.model import MAT
+from mat_sdk.ppo import Rows
 
 
 class OfficialAttention(nn.Module):
@@ -113,20 +114,20 @@ class OfficialStyleMAT(nn.Module):
         return actions, log_probs, values
 
 
-def official_loss(model: OfficialStyleMAT, value_norm, mb: dict[str, Tensor], cfg) -> Tensor:
+def official_loss(model: OfficialStyleMAT, value_norm, mb: Rows, cfg) -> Tensor:
     """`mat_trainer.ppo_update` for continuous actions, step by step (with a correct Huber)."""
-    mean, std, values = model(mb["obs"], mb["actions"])
+    mean, std, values = model(mb.obs, mb.actions)
     distri = torch.distributions.Normal(mean, std)  # validate_args on, as the official code runs
-    action_log_probs = distri.log_prob(mb["actions"])
+    action_log_probs = distri.log_prob(mb.actions)
     dist_entropy = distri.entropy().mean()
-    imp_weights = torch.exp(action_log_probs - mb["log_probs"])
-    surr1 = imp_weights * mb["advantages"]
-    surr2 = torch.clamp(imp_weights, 1.0 - cfg.clip, 1.0 + cfg.clip) * mb["advantages"]
+    imp_weights = torch.exp(action_log_probs - mb.log_probs)
+    surr1 = imp_weights * mb.advantages
+    surr2 = torch.clamp(imp_weights, 1.0 - cfg.clip, 1.0 + cfg.clip) * mb.advantages
     policy_loss = -torch.sum(torch.min(surr1, surr2), dim=-1, keepdim=True).mean()
-    value_pred_clipped = mb["values"] + (values - mb["values"]).clamp(-cfg.clip, cfg.clip)
-    value_norm.update(mb["returns"])
-    error_clipped = value_norm.normalize(mb["returns"]) - value_pred_clipped
-    error_original = value_norm.normalize(mb["returns"]) - values
+    value_pred_clipped = mb.values + (values - mb.values).clamp(-cfg.clip, cfg.clip)
+    value_norm.update(mb.returns)
+    error_clipped = value_norm.normalize(mb.returns) - value_pred_clipped
+    error_original = value_norm.normalize(mb.returns) - values
     value_loss_clipped = _huber(error_clipped, cfg.huber_delta)
     value_loss_original = _huber(error_original, cfg.huber_delta)
     value_loss = torch.max(value_loss_original, value_loss_clipped).mean()

@@ -48,7 +48,7 @@ def main(
     for label, options in variants(workers).items():
         times: list[dict] = []
         with Trainer(env_id, "mat", **options, **recipe) as trainer:
-            per_update = trainer.config.num_envs * trainer.config.rollout_length
+            per_update = trainer.config.ppo.steps_per_update
             start = time.perf_counter()
             trainer.learn(per_update * updates, progress_bar=False, callback=_append_to(times))
             total = time.perf_counter() - start

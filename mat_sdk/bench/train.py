@@ -16,27 +16,28 @@ from functools import partial
 
 import torch
 
+from mat_sdk import ppo
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
 from mat_sdk.config import RECIPES, TrainConfig
 from mat_sdk.normalization import ValueNorm
+from mat_sdk.ppo import Rows
 from mat_sdk.processes import usable_cores
 from mat_sdk.timing import compare, print_table
 from mat_sdk.trainer import Trainer
 from mat_sdk.tuning import twin
 
 
-def _reference_step(trainer: Trainer, batch: dict[str, torch.Tensor]):
+def _reference_step(trainer: Trainer, batch: Rows):
     model = OfficialStyleMAT(copy.deepcopy(trainer.policy), trainer.env.n_agents).to(trainer.device)
     # torch's defaults, as the official code has them: for-loops on CPU, foreach on CUDA
-    optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(model.parameters(), lr=trainer.config.ppo.lr, eps=1e-5)
     value_norm = ValueNorm(device=trainer.device)
 
     def step(idx):
-        mb = {key: value[idx] for key, value in batch.items()}
-        loss = official_loss(model, value_norm, mb, trainer.config)
+        loss = official_loss(model, value_norm, batch[idx], trainer.config.ppo)
         optimizer.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), trainer.config.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(model.parameters(), trainer.config.ppo.max_grad_norm)
         optimizer.step()
 
     return step
@@ -44,7 +45,7 @@ def _reference_step(trainer: Trainer, batch: dict[str, torch.Tensor]):
 
 def _keeping_subnormals(step):
     """`step` with subnormal floats computed as such, as torch does by default (the
-    trainer flushes them to zero: `TrainConfig.flush_denormal`)."""
+    trainer flushes them to zero: `RunConfig.flush_denormal`)."""
 
     def run(idx):
         torch.set_flush_denormal(False)
@@ -56,11 +57,15 @@ def _keeping_subnormals(step):
     return run
 
 
-def _whole_update(trainer: Trainer, batch: dict[str, torch.Tensor]):
+def _whole_update(trainer: Trainer, batch: Rows):
     """One update as the trainer's config shapes it: epochs x minibatches over `batch`."""
+    shape = trainer.config.ppo
 
     def run():
-        for idx in trainer.minibatches(batch["obs"].shape[0]):
+        for idx in ppo.minibatches(
+            len(batch), shape.ppo_epochs, shape.num_minibatches,
+            trainer.collector.shuffle_generator, trainer.device,
+        ):  # fmt: skip
             trainer.optimizer_step(batch, idx)
         if trainer.device.type == "cuda":
             torch.cuda.synchronize()
@@ -75,7 +80,12 @@ def _recipes(trainer: Trainer, batch, rollout_s: float, rounds: int, split: bool
     try:
         for recipe in RECIPES:
             settings = TrainConfig.for_algo("mat", recipe)
-            shape = {key: getattr(settings, key) for key in ("lr", "ppo_epochs", "num_minibatches")}
+            ppo = settings.ppo
+            shape = {
+                "lr": ppo.lr,
+                "ppo_epochs": ppo.ppo_epochs,
+                "num_minibatches": ppo.num_minibatches,
+            }
             twins[recipe] = twin(trainer, batch, **shape)
             if split:
                 twins[f"{recipe} + 1 update worker"] = twin(trainer, batch, 1, **shape)
@@ -83,7 +93,7 @@ def _recipes(trainer: Trainer, batch, rollout_s: float, rounds: int, split: bool
         times = compare(updates, seconds=rounds * len(updates) * 2.0, rounds=rounds)
         rows = []
         for name, update_s in times.items():
-            cfg = twins[name].config
+            cfg = twins[name].config.ppo
             rows.append(
                 {
                     "recipe": name,
@@ -95,7 +105,7 @@ def _recipes(trainer: Trainer, batch, rollout_s: float, rounds: int, split: bool
                     "vs paper": f"{times['paper'] / update_s:.2f}x update",
                 }
             )
-        print_table(rows, f"Recipes side by side, {trainer.config.env}, {trainer.device}")
+        print_table(rows, f"Recipes side by side, {trainer.config.env.id}, {trainer.device}")
     finally:
         for copied in twins.values():
             copied.gradients.close()
@@ -123,7 +133,7 @@ def main(
             trajectory = trainer.rollout()
         rollout_s = (time.perf_counter() - start) / rollouts
         batch = trajectory.rows()
-        size = batch["obs"].shape[0] // 40
+        size = len(batch) // 40
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(40)]
         cpu = trainer.device.type == "cpu"
         split = cpu and usable_cores() > 1  # an update worker needs a core of its own

@@ -93,20 +93,15 @@ def resumable(checkpoint: Path, resume: str) -> Iterator[None]:
         raise SystemExit(130) from None
 
 
-def parse_faults(values: tuple[str, ...]) -> dict[str, str]:
-    """`("bfoot=zero", "agent_2=remove", "FR_calf_joint=weak:0.5")` -> `{"bfoot": "zero",
-    ...}`. The env checks a weak motor's fraction (0 < S < 1) and the names."""
-    faults = {}
-    for value in values:
-        name, sep, mode = value.partition("=")
-        if not sep or not name or not (mode in ("zero", "remove") or mode.startswith("weak:")):
-            raise click.BadParameter(
-                f"{value!r}: use NAME=zero, NAME=remove or NAME=weak:S (S: the torque a weak "
-                f"motor keeps, e.g. 0.5)",
-                param_hint="--fault",
-            )
-        faults[name] = mode
-    return faults
+def parse_faults(values: tuple[str, ...]) -> tuple:
+    """`("bfoot=zero", "agent_2=remove", "FR_calf_joint=weak:0.5")` -> `Fault`s, each
+    checked (`Fault.parse`); the env checks the names."""
+    from mat_sdk.faults import Fault, faults_of
+
+    try:
+        return faults_of(Fault.parse(value) for value in values)
+    except ValueError as error:
+        raise click.BadParameter(str(error), param_hint="--fault") from None
 
 
 def fault_option(purpose: str) -> Callable:
@@ -116,7 +111,7 @@ def fault_option(purpose: str) -> Callable:
     )
 
 
-def set_option(purpose: str = "Any TrainConfig field, e.g. lr=3e-4.") -> Callable:
+def set_option(purpose: str = "Any training option, e.g. lr=3e-4.") -> Callable:
     """`--set KEY=VALUE`, repeatable (see `parse_settings`)."""
     return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help=purpose)
 

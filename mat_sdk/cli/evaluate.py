@@ -86,7 +86,7 @@ def evaluate(
         trust_env_code=trust_env_code,
         **parse_settings(env_options, param_hint="--env-option"),
     )
-    name = env_id or loaded.config["train"]["env"]
+    name = env_id or loaded.training.env.id
     click.echo(f"{name}: {result.summary()}")
     if result.terms:
         click.echo(result.breakdown())

@@ -89,15 +89,15 @@ def finetune(
     from mat_sdk.finetune import default_out
     from mat_sdk.finetune import finetune as run
 
-    fault_map = parse_faults(faults)
-    out = Path(out_dir) if out_dir else default_out(env_id, fault_map)
+    changes = parse_faults(faults)
+    out = Path(out_dir) if out_dir else default_out(env_id, changes)
     again = f"mat finetune {checkpoint} --out {out} --steps {steps} --resume"
     options = parse_settings(settings, FINETUNE_OPTIONS)
     with resumable(out / "checkpoint.pt", again):
         result = run(
             checkpoint,
             env=env_id,
-            faults=fault_map,
+            faults=changes,
             steps=steps,
             out_dir=out,
             eval_episodes=episodes,

@@ -16,10 +16,10 @@ from mat_sdk.cli.common import (
     set_option,
     user_errors,
 )
-from mat_sdk.config import DEFAULT_RECIPE, RECIPES, TrainConfig
+from mat_sdk.config import DEFAULT_RECIPE, RECIPES, PPOConfig, RunConfig, TrainConfig
 from mat_sdk.processes import usable_cores
 
-# TrainConfig fields with options of their own (field -> the option's parameter)
+# training options with options of their own (field -> the option's parameter)
 OWN = {"recipe": "recipe", "num_envs": "num_envs", "workers": "workers",
        "update_workers": "update_workers", "seed": "seed", "device": "device",
        "faults": "faults", "ray": "ray_address"}  # fmt: skip
@@ -60,25 +60,25 @@ TRAIN_OPTIONS = {
     help="Total env steps.",
 )  # fmt: skip
 @click.option(
-    "--num-envs", default=TrainConfig.num_envs, show_default=True, help="Env copies per rollout."
+    "--num-envs", default=PPOConfig.num_envs, show_default=True, help="Env copies per rollout."
 )
 @click.option(
     "--workers",
-    default=TrainConfig.workers,
+    default=RunConfig.workers,
     show_default=True,
     help="Env worker processes (0: in-process). This process steps a share too when it has a "
     "core left, so on C cores use at most C - 1.",
 )
 @click.option(
     "--update-workers",
-    default=TrainConfig.update_workers,
+    default=RunConfig.update_workers,
     show_default=True,
     help="Processes that each compute the gradient of a share of every minibatch (CPU; the "
     "same math). On C cores use at most C - 1; with --set compile=true, the fastest update "
     "on 2 cores (BENCHMARKS.md).",
 )
-@click.option("--seed", default=TrainConfig.seed, show_default=True)
-@click.option("--device", default=TrainConfig.device, show_default=True, help="cpu | cuda | auto")
+@click.option("--seed", default=RunConfig.seed, show_default=True)
+@click.option("--device", default=RunConfig.device, show_default=True, help="cpu | cuda | auto")
 @click.option(
     "--out",
     "out_dir",

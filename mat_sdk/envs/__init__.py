@@ -2,7 +2,7 @@
 PettingZoo envs and vectorised arrays.
 
     from mat_sdk import envs
-    env = envs.make("cheetah-6x1", faults={"bfoot": "zero"})      # PettingZoo ParallelEnv
+    env = envs.make("cheetah-6x1", faults=[envs.Fault.zero("bfoot")])  # PettingZoo ParallelEnv
     vec = envs.make_vec("cheetah-6x1", num_envs=40, workers=2)      # obs [40, 6, obs_dim]
     arm = envs.from_mjcf("arm.xml", [["shoulder"], ["elbow", "wrist"]], reward)  # your robot
     vec = envs.make_vec("my_robots:arm", num_envs=8)                # by module:function id
@@ -21,12 +21,13 @@ Options (keywords of `make`, `make_vec` and `make_team`):
     seed           random stream of the env (initial pose, target)
     randomize      domain randomization: true (every factor at its default range), or a
                    mapping of factors, e.g. {"payload": [0, 2], "push": null} (robots)
-Faults: `{"<agent name or joint name>": "zero" | "remove" | "weak:S"}`. "zero" leaves the
-agent in the team with its actuator(s) taking no action (a position actuator holds its start
-target); "remove" takes the agent out of the team (its actuators produce nothing) so the agent
-count drops; "weak:S" leaves the actuator(s) S of their force, 0 < S < 1. Remaining agents
-keep their names and their one-hot ids, so a policy trained on the full robot still
-recognises them.
+Faults (`envs.Fault`, from `mat_sdk.faults`), each naming an agent or a joint:
+`Fault.zero(name)` leaves the agent in the team with its actuator(s) taking no action (a
+position actuator holds its start target); `Fault.remove(name)` takes the agent out of the
+team (its actuators produce nothing) so the agent count drops; `Fault.weak(name, S)` leaves
+the actuator(s) S of their force, 0 < S < 1. The mapping form `{name: "zero" | "remove" |
+"weak:S"}` (as checkpoints store faults) is taken too. Remaining agents keep their names
+and their one-hot ids, so a policy trained on the full robot still recognises them.
 Actions are in [-1, 1] (mapped onto each actuator's control range); finite values outside
 are clipped; a wrong shape, a missing or unknown agent, NaN or inf raise `ValueError`.
 `coordination-N`, a small discrete game, takes choices 0..N-1 instead (`Discrete(N)`).
@@ -36,7 +37,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
 from dataclasses import replace
 from typing import Any
 
@@ -80,12 +80,15 @@ from mat_sdk.envs.robots import env_ids
 from mat_sdk.envs.sources import RobotSpec, from_dm_control, from_mjcf
 from mat_sdk.envs.team import RobotTeam
 from mat_sdk.envs.vector import TeamFactory, VecTeam
+from mat_sdk.faults import Fault, FaultsLike, as_mapping, faults_of
 
 __all__ = [
     "ENTRY_POINT_GROUP",
     "FAMILY_IDENTITY",
     "Env",
     "EnvSpec",
+    "Fault",
+    "FaultsLike",
     "JointTargets",
     "Observation",
     "PettingZooSpec",
@@ -97,8 +100,10 @@ __all__ = [
     "TrainingRecipe",
     "UntrustedEnvError",
     "VecTeam",
+    "as_mapping",
     "check_trusted",
     "family_identity",
+    "faults_of",
     "from_dm_control",
     "from_mjcf",
     "from_pettingzoo",
@@ -118,9 +123,7 @@ __all__ = [
 Env = str | EnvSpec
 
 
-def make_team(
-    env: Env, faults: Mapping[str, str] | None = None, visual: bool = False, **options: Any
-):
+def make_team(env: Env, faults: FaultsLike = None, visual: bool = False, **options: Any):
     """The array-level team (`step(actions [n, action_width])`), the fastest single env.
     `visual`: to render, an MJCF model compiled with the visual assets (textures, visual
     meshes) that env copies leave out."""
@@ -133,7 +136,7 @@ def make_team(
 
 def make(
     env: Env,
-    faults: Mapping[str, str] | None = None,
+    faults: FaultsLike = None,
     render_mode: str | None = None,
     **options: Any,
 ) -> TeamParallelEnv:
@@ -146,7 +149,7 @@ def make_vec(
     num_envs: int,
     workers: int = 0,
     seed: int = 0,
-    faults: Mapping[str, str] | None = None,
+    faults: FaultsLike = None,
     **options: Any,
 ) -> VecTeam:
     """`num_envs` autoresetting copies stepped as arrays; `workers` > 0 uses processes.
@@ -154,7 +157,7 @@ def make_vec(
     Worker processes get the resolved spec (pickled), so an env registered only in this
     process works with workers as long as its functions are importable (module-level)."""
     spec = resolve(env)
-    factory = TeamFactory(build_team, {"env": spec, "faults": dict(faults or {}), **options})
+    factory = TeamFactory(build_team, {"env": spec, "faults": faults_of(faults), **options})
     return VecTeam(factory, num_envs, workers=workers, seed=seed)
 
 
@@ -190,7 +193,7 @@ def list_envs() -> list[dict[str, Any]]:
 
 
 def random_rollout(
-    env: Env, steps: int, seed: int = 0, faults: Mapping[str, str] | None = None
+    env: Env, steps: int, seed: int = 0, faults: FaultsLike = None
 ) -> tuple[TeamParallelEnv, list[float]]:
     """`steps` env steps of a team acting uniformly at random over each agent's action space
     (from streams independent of the env's own); -> the env and its episodes' returns (the

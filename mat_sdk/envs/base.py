@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import traceback
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -60,47 +60,6 @@ def position_features(position: str | None, count: int) -> np.ndarray:
         cap = NEAR_ENDS if position == "near-ends" else 1
         return np.minimum(np.stack([index, count - 1 - index], axis=1), cap) / cap
     raise ValueError(f"position must be one of {POSITIONS} or None, got {position!r}")
-
-
-FAULT_MODES = ("zero", "remove", "weak:S")  # S: the torque a weak motor keeps, 0 < S < 1
-WEAK = "weak:"
-
-
-def weak_strength(mode: str) -> float | None:
-    """The fraction S of its torque that a "weak:S" fault leaves a motor (0 < S < 1), None
-    for another mode; ValueError for a "weak:" whose S is not such a number."""
-    if not mode.startswith(WEAK):
-        return None
-    try:
-        strength = float(mode[len(WEAK) :])
-    except ValueError:
-        strength = math.nan
-    if not 0 < strength < 1:
-        raise ValueError(
-            f"{mode!r}: a weak motor keeps a fraction of its torque strictly between 0 and 1, "
-            f"e.g. 'weak:0.5' ('zero' for none)"
-        )
-    return strength
-
-
-def check_faults(faults: object) -> None:
-    """Refuse faults that are not `{name: "zero" | "remove" | "weak:S"}` with string names,
-    before any name reaches MuJoCo (whose name lookup crashes on a non-string)."""
-    if faults is None:
-        return
-    if not isinstance(faults, Mapping):
-        raise ValueError(
-            f"faults must map agent or joint names to 'zero', 'remove' or 'weak:S', got {faults!r}"
-        )
-    for name, mode in faults.items():
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"a fault names an agent or joint by a non-empty string, got {name!r}")
-        if not isinstance(mode, str) or not (mode in ("zero", "remove") or mode.startswith(WEAK)):
-            raise ValueError(f"fault {name}={mode!r}: mode must be one of {FAULT_MODES}")
-        try:
-            weak_strength(mode)
-        except ValueError as error:
-            raise ValueError(f"fault {name}={error}") from None
 
 
 # An action column that drives nothing (a zeroed fault, a narrower agent's padding).

@@ -11,11 +11,12 @@ they score at most 1/3, MAT up to 1.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
 from mat_sdk.envs.base import ArrayTeam
+from mat_sdk.faults import Fault, faults_of
 
 _ID = re.compile(r"coordination-(\d+)$")
 
@@ -25,7 +26,11 @@ class CoordinationGame(ArrayTeam):
     description = "discrete test game: N agents pick from N options, all different (N >= 2)"
 
     def __init__(
-        self, env_id: str, faults: Mapping[str, str] | None = None, *, seed: int | None = None
+        self,
+        env_id: str,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
+        *,
+        seed: int | None = None,
     ):
         match = _ID.match(env_id)
         if not match or int(match.group(1)) < 2:
@@ -34,12 +39,13 @@ class CoordinationGame(ArrayTeam):
             )
         self.env_id = env_id
         self.size = int(match.group(1))
-        removed = {name for name, mode in (faults or {}).items() if mode == "remove"}
+        faults = faults_of(faults)
+        removed = {fault.target for fault in faults}
         names = [f"agent_{i}" for i in range(self.size)]
-        unknown = set(faults or {}) - set(names)
-        if unknown or any(mode != "remove" for mode in (faults or {}).values()):
+        if removed - set(names) or any(fault.kind != "remove" for fault in faults):
             raise ValueError(
-                f"coordination games support '<agent>=remove' faults only, got {faults}"
+                "coordination games support '<agent>=remove' faults only, got "
+                + ", ".join(map(str, faults))
             )
         self.active = [i for i, name in enumerate(names) if name not in removed]
         self.agents = [names[i] for i in self.active]

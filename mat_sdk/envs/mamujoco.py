@@ -22,7 +22,7 @@ import io
 import math
 import re
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import mujoco
@@ -31,15 +31,14 @@ import numpy as np
 from mat_sdk.envs.base import (
     NO_ACTUATOR,
     ArrayTeam,
-    check_faults,
     checked_episode_limit,
     diverged,
     end_diverged,
     position_features,
     render_failed,
-    weak_strength,
 )
 from mat_sdk.envs.randomization import Randomization, Randomizer
+from mat_sdk.faults import Fault, faults_of
 
 PREFIX = "mamujoco:"
 _ID = re.compile(r"mamujoco:(\w+)-(\w+)$")
@@ -90,7 +89,7 @@ class MaMuJoCoTeam(ArrayTeam):
     def __init__(
         self,
         env_id: str,
-        faults: Mapping[str, str] | None = None,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         *,
         seed: int | None = None,
         agent_id: bool | None = None,
@@ -141,7 +140,7 @@ class MaMuJoCoTeam(ArrayTeam):
         self.state_dim = self._env.state().shape[0] if hasattr(self._env, "state") else 0
         spec_limit = self._env.single_agent_env.spec.max_episode_steps
         self.episode_limit = checked_episode_limit(episode_limit, spec_limit or 1000)
-        self._action_mask = self._fault_mask(faults or {})
+        self._action_mask = self._fault_mask(faults_of(faults))
         self.control_timestep = float(self._env.single_agent_env.unwrapped.dt)
         self._picture = None  # a dm_control Physics to draw frames with
         self._seed = seed
@@ -239,7 +238,7 @@ class MaMuJoCoTeam(ArrayTeam):
         truncated = bool(truncations[first]) or self._steps >= self.episode_limit
         return packed, reward, bool(terminations[first]), truncated
 
-    def _fault_mask(self, faults: Mapping[str, str]) -> np.ndarray:
+    def _fault_mask(self, faults: tuple[Fault, ...]) -> np.ndarray:
         """`[n, action_width]`: each entry's torque fraction: 0 where a "zero" fault silences
         the entry's actuator, S where a "weak:S" fault weakens it (the action scaled: these
         are torque motors), else 1.
@@ -248,20 +247,19 @@ class MaMuJoCoTeam(ArrayTeam):
         (`bfoot`), as for our own robots; "remove" is not offered, since a MaMuJoCo
         scenario fixes its team.
         """
-        check_faults(faults)
         joints = {
             node.label: (row, col)
             for row, partition in enumerate(self._env.agent_action_partitions)
             for col, node in enumerate(partition)
         }
         mask = np.ones((self.n_agents, self.action_width))
-        for name, mode in faults.items():
-            if mode == "remove":
+        for fault in faults:
+            name, strength = fault.target, fault.strength
+            if fault.kind == "remove":
                 raise ValueError(
                     f"MaMuJoCo faults support modes 'zero' and 'weak:S' only (a scenario fixes "
-                    f"its team); got {name}={mode}"
+                    f"its team); got {fault}"
                 )
-            strength = 0.0 if mode == "zero" else weak_strength(mode)
             if name in self.agents:
                 mask[self.agents.index(name)] = strength
             elif name in joints:

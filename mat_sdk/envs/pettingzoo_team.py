@@ -26,6 +26,7 @@ import numpy as np
 from gymnasium import spaces
 
 from mat_sdk.envs.base import ArrayTeam, checked_episode_limit
+from mat_sdk.faults import Fault
 
 TEAM_REWARDS = ("sum", "mean")
 SUPPORTED = (
@@ -45,7 +46,7 @@ class PettingZooSpec:
     episode_limit: int | None = None
     description: str = ""
 
-    def build(self, faults: Mapping[str, str] | None = None, **options: Any) -> PettingZooTeam:
+    def build(self, faults: tuple[Fault, ...] = (), **options: Any) -> PettingZooTeam:
         return PettingZooTeam(self, faults, **options)
 
     def renamed(self, env_id: str) -> PettingZooSpec:
@@ -111,7 +112,7 @@ class PettingZooTeam(ArrayTeam):
     def __init__(
         self,
         spec: PettingZooSpec,
-        faults: Mapping[str, str] | None = None,
+        faults: tuple[Fault, ...] = (),
         *,
         seed: int | None = None,
         agent_id: bool | None = None,

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
 
-from mat_sdk.envs.base import check_faults
 from mat_sdk.envs.games import CoordinationGame
 from mat_sdk.envs.mamujoco import PREFIX as MAMUJOCO
 from mat_sdk.envs.mamujoco import MaMuJoCoTeam
@@ -36,6 +35,7 @@ from mat_sdk.envs.recipe import TrainingRecipe
 from mat_sdk.envs.robots import FAMILIES, env_ids, spec_for
 from mat_sdk.envs.sources import RobotSpec
 from mat_sdk.envs.team import RobotTeam
+from mat_sdk.faults import Fault, faults_of
 
 ENTRY_POINT_GROUP = "mat_sdk.envs"
 _REGISTERED: dict[str, Any] = {}
@@ -48,7 +48,7 @@ class TeamClassSpec:
     env_id: str
     kind: type
 
-    def build(self, faults: Mapping[str, str] | None = None, **options: Any):
+    def build(self, faults: tuple[Fault, ...] = (), **options: Any):
         return self.kind(self.env_id, faults, **options)
 
 
@@ -177,9 +177,11 @@ def family_identity(env: str | EnvSpec, options: Mapping[str, Any]) -> dict[str,
     return {**options, "position": FAMILY_IDENTITY}
 
 
-def build_team(env: str | EnvSpec, faults: Mapping[str, str] | None = None, **options: Any):
+def build_team(
+    env: str | EnvSpec, faults: Iterable[Fault] | Mapping[str, str] | None = None, **options: Any
+):
     """The team an id or spec names, with the options its team class takes."""
-    check_faults(faults)
+    faults = faults_of(faults)
     spec = resolve(env)
     kind = spec.kind if isinstance(spec, TeamClassSpec) else _TEAM_OF[type(spec)]
     _check_options(kind, spec.env_id, options)

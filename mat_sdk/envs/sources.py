@@ -31,6 +31,7 @@ from mat_sdk.envs.features import Observation
 from mat_sdk.envs.model_task import ModelEnvironment
 from mat_sdk.envs.randomization import Randomization
 from mat_sdk.envs.recipe import TrainingRecipe
+from mat_sdk.faults import Fault
 
 Layout = Sequence[Sequence[str]] | Mapping[str, Sequence[str]]
 # Physics steps per env step at most: more is no control rate, and one env step would run
@@ -82,7 +83,7 @@ class RobotSpec:
             factory = with_task(task)
         return factory(seed)
 
-    def build(self, faults: Mapping[str, str] | None = None, **options: Any):
+    def build(self, faults: tuple[Fault, ...] = (), **options: Any):
         """The team (`RobotTeam`); options as `mat_sdk.envs.make_team` takes them."""
         from mat_sdk.envs.team import RobotTeam
 

@@ -20,7 +20,7 @@ the command and the previous action. `wiring()` describes the signals for a cont
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
 import mujoco
@@ -31,13 +31,11 @@ from mat_sdk.envs.base import (
     NO_ACTUATOR,
     SETTLE_SECONDS,
     ArrayTeam,
-    check_faults,
     checked_episode_limit,
     diverged,
     end_diverged,
     position_features,
     render_failed,
-    weak_strength,
 )
 from mat_sdk.envs.decomposition import (
     actuator_joints,
@@ -50,6 +48,7 @@ from mat_sdk.envs.decomposition import (
 from mat_sdk.envs.features import Signal, robot_signals
 from mat_sdk.envs.randomization import Randomization, Randomizer
 from mat_sdk.envs.trunk import Trunk
+from mat_sdk.faults import Fault, faults_of
 
 if TYPE_CHECKING:
     from mat_sdk.envs.sources import RobotSpec
@@ -70,7 +69,7 @@ class RobotTeam(ArrayTeam):
     def __init__(
         self,
         spec: RobotSpec,
-        faults: Mapping[str, str] | None = None,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         *,
         seed: int | None = None,
         agent_id: bool | None = None,
@@ -106,7 +105,7 @@ class RobotTeam(ArrayTeam):
         self._positions = position_features(position, len(spec.groups))
         self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
         self.possible_agents = spec.names()
-        self.faults = dict(faults or {})
+        self.faults = faults_of(faults)
         zeroed, removed, weakened = self._resolve_faults(self.faults)
         weaken(self._model, weakened)
         self.active = [i for i in range(len(self.team)) if i not in removed]
@@ -145,22 +144,20 @@ class RobotTeam(ArrayTeam):
         return [self._model.joint(j).name for j in self.team[agent].joints]
 
     def _resolve_faults(
-        self, faults: Mapping[str, str]
+        self, faults: tuple[Fault, ...]
     ) -> tuple[set[int], set[int], dict[int, float]]:
-        """Map `{agent or joint name: mode}` to zeroed actuators, removed agents and weak
-        actuators (with the torque each keeps)."""
+        """Zeroed actuators, removed agents and weak actuators (with the force each keeps)."""
         zeroed: set[int] = set()
         removed: set[int] = set()
         weakened: dict[int, float] = {}
-        check_faults(faults)
-        for name, mode in faults.items():
-            agents, actuators = self._fault_target(name)
-            if mode == "remove":
+        for fault in faults:
+            agents, actuators = self._fault_target(fault.target)
+            if fault.kind == "remove":
                 removed.update(agents)
-            elif mode == "zero":
+            elif fault.kind == "zero":
                 zeroed.update(actuators)
             else:
-                weakened.update(dict.fromkeys(actuators, weak_strength(mode)))
+                weakened.update(dict.fromkeys(actuators, fault.strength))
         if len(removed) == len(self.team):
             raise ValueError("faults remove every agent; at least one must stay")
         for agent in removed:
