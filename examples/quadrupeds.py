@@ -2,6 +2,7 @@
 Unitree A1 (12.5 kg) and Boston Dynamics Spot (50.3 kg), one agent per leg.
 
     PYTHONPATH=examples mat train quadrupeds:spot --seeds 3 --steps 2000000 --out runs/spot
+    PYTHONPATH=examples mat train quadrupeds:go2_joystick --steps 2000000   # any command
 
 Only names differ per robot: the layout (which actuators each leg drives), the feet, the
 IMU and the trunk, and where an episode starts. The A1 starts from joint angles (`start=`,
@@ -15,7 +16,7 @@ folder says what was removed and under which licence); the full models work the 
 
 from pathlib import Path
 
-from mat_sdk.envs.legged import WALK, LeggedRobot
+from mat_sdk.envs.legged import JOYSTICK, WALK, LeggedRobot
 
 ROBOTS = Path(__file__).parent / "robots"
 LEGS = ("FL", "FR", "RL", "RR")  # front left, front right, rear left, rear right
@@ -56,6 +57,19 @@ def a1():
 
 def spot():
     return WALK.spec(SPOT)
+
+
+def go2_joystick():
+    """`legged.JOYSTICK`: any velocity command in range, standing included, changing every 5 s."""
+    return JOYSTICK.spec(GO2)
+
+
+def a1_joystick():
+    return JOYSTICK.spec(A1)
+
+
+def spot_joystick():
+    return JOYSTICK.spec(SPOT)
 
 
 def go2_task_on_spot():

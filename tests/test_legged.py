@@ -15,7 +15,7 @@ from helpers import TINY
 
 from mat_sdk import envs
 from mat_sdk.envs import terms
-from mat_sdk.envs.legged import WALK
+from mat_sdk.envs.legged import JOYSTICK, WALK
 from mat_sdk.recipes import with_examples
 from mat_sdk.runs import RunRequest, with_task_recipe
 from mat_sdk.trainer import Trainer
@@ -317,3 +317,64 @@ def test_mat_eval_grid_reports_tracking_per_command_and_plots_it(tmp_path):
     assert both.exit_code == 2 and "--sweep and --grid are two reports" in both.output
     commanded = CliRunner().invoke(main, [*args, "--env-option", "command=[1,0,0]"])
     assert commanded.exit_code == 2 and "--grid sets the command itself" in commanded.output
+
+
+def test_a_joystick_command_changes_within_an_episode_stands_on_purpose_and_resumes_exactly():
+    """`legged.JOYSTICK`: a new command every 5 s (250 steps), one observed by the step after
+    the reward that followed the old one; a tenth of them zero; a team restored mid-period
+    draws the same next command."""
+    team = envs.make_team("quadrupeds:go2_joystick", seed=3)
+    team.reset(seed=3)
+    task, zero = team._task, np.zeros((4, 3))
+    commands = [task.command.copy()]
+    for step in range(1, 751):
+        team.advance(zero)
+        if step == 100:
+            saved = team.get_state()
+        if not np.array_equal(task.command, commands[-1]):
+            assert step % 250 == 0, step  # on the period, not between
+            commands.append(task.command.copy())
+    assert len(commands) == 4  # the first and three resampled
+    restored = envs.make_team("quadrupeds:go2_joystick", seed=99)
+    restored.reset(seed=99)
+    restored.set_state(saved)
+    for _ in range(150):
+        restored.advance(zero)
+    assert np.array_equal(restored._task.command, commands[1])
+    draws = JOYSTICK.commands
+    random = np.random.RandomState(0)
+    samples = np.array([draws.sample(random) for _ in range(4000)])
+    standing = (samples == 0).all(axis=1).mean()
+    assert 0.08 < standing < 0.12  # the share asked for
+    assert samples[:, 0].min() < -0.4 and samples[:, 1].max() > 0.4 and samples[:, 2].min() < -0.9
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"standing": 1.5}, r"VelocityCommand.standing is a share in \[0, 1\], got 1.5"),
+        (
+            {"resample_seconds": 0},
+            "VelocityCommand.resample_seconds must be a number of seconds > 0",
+        ),
+    ],
+)
+def test_a_joystick_setting_out_of_range_is_refused_naming_it(options, message):
+    with pytest.raises(ValueError, match=message):
+        terms.VelocityCommand(vx=(0.0, 1.0), **options)
+
+
+def test_stand_still_costs_joints_away_from_the_start_pose_at_a_zero_command_only():
+    team = envs.make_team("quadrupeds:go2_joystick", seed=0, randomize=False, command=[0, 0, 0])
+    team.reset(seed=0)
+    index = team.reward_terms.index("stand_still")
+    for _ in range(10):
+        team.advance(np.zeros((4, 3)))  # joint targets at the start pose
+    resting = team.term_values()[index]
+    for _ in range(10):
+        team.advance(np.full((4, 3), 0.8))  # every joint driven away from it
+    assert team.term_values()[index] < 3 * resting < 0  # moved joints cost
+    moving = envs.make_team("quadrupeds:go2_joystick", seed=0, randomize=False, command=[0.5, 0, 0])
+    moving.reset(seed=0)
+    moving.advance(np.full((4, 3), 0.8))
+    assert moving.term_values()[index] == 0.0  # told to move: no cost

@@ -142,3 +142,15 @@ WALK = LeggedTask(
         eval_every=0,
     ),
 )
+
+# Following a joystick: any velocity in the ranges of Unitree's deployed Go2 policy (vx
+# -0.5..1 m/s, vy +-0.5 m/s, yaw rate +-1 rad/s), a tenth of the commands zero (the stick at
+# rest: the robot stands, its joints at the start pose), a new command every 5 s within an
+# episode; WALK's terms otherwise.
+JOYSTICK = replace(
+    WALK,
+    reward=(*WALK.reward, terms.StandStill(0.5)),
+    commands=terms.VelocityCommand(
+        vx=(-0.5, 1.0), vy=(-0.5, 0.5), yaw_rate=(-1.0, 1.0), standing=0.1, resample_seconds=5.0
+    ),
+)

@@ -226,6 +226,11 @@ class ModelTask(base.Task):
         self._noise_scale = _noise_scales(model, recipe.reset_noise)
         self.command = np.zeros(3 if recipe.commands else 0)
         self.fixed_command: np.ndarray | None = None
+        control_timestep = physics.model.opt.timestep * recipe.substeps
+        every = recipe.commands.resample_seconds if recipe.commands else None
+        # control steps between commands (0: one per episode), and since the last one
+        self._command_period = 0 if every is None else max(1, round(every / control_timestep))
+        self._command_age = 0
         # per actuator, in [-1, 1]: this step's action and the step's before
         self.action, self.previous_action = np.zeros(model.nu), np.zeros(model.nu)
         uses_terms = not callable(recipe.reward) or (
@@ -240,7 +245,7 @@ class ModelTask(base.Task):
             self.robot_scale = terms.RobotScale.of(model, self.start_qpos[trunk.qpos + 2])
             self._step = terms.Step(
                 physics.data.ptr, model, trunk, self.command, self.action, self.previous_action,
-                physics.model.opt.timestep * recipe.substeps, self.robot_scale,
+                control_timestep, self.robot_scale, self.start_qpos,
             )  # fmt: skip
 
     # ---------------------------------------------------------------- episodes
@@ -265,6 +270,7 @@ class ModelTask(base.Task):
         if self.recipe.commands is not None:
             command = self.recipe.commands.sample(self.random)
             self.command[:] = command if self.fixed_command is None else self.fixed_command
+        self._command_age = 0
         super().initialize_episode(physics)
 
     def _turn_free_joints(self, model, data) -> None:
@@ -293,6 +299,16 @@ class ModelTask(base.Task):
         self.action[:] = 0.0
         self.action[actuators] = actions
 
+    def end_step(self) -> None:
+        """After a step's reward, before its observation: a new command where its period
+        has passed (`VelocityCommand.resample_seconds`), so the step is rewarded for the
+        command its action followed and the next action sees the new one."""
+        if self._command_period and self.fixed_command is None:
+            self._command_age += 1
+            if self._command_age >= self._command_period:
+                self.command[:] = self.recipe.commands.sample(self.random)
+                self._command_age = 0
+
     def set_command(self, command) -> None:
         """Hold the command at `command` (vx, vy, yaw_rate) in every episode (evaluation)."""
         if self.recipe.commands is None:
@@ -304,11 +320,13 @@ class ModelTask(base.Task):
         memory = {} if self._step is None else self._step.memory
         return {"command": self.command.copy(), "action": self.action.copy(),
                 "previous_action": self.previous_action.copy(),
+                "command_age": self._command_age,
                 "memory": {key: value.copy() for key, value in memory.items()}}  # fmt: skip
 
     def set_state(self, state: dict[str, Any]) -> None:
         for name in ("command", "action", "previous_action"):
             getattr(self, name)[:] = state[name]
+        self._command_age = int(state.get("command_age", 0))  # absent before resampling
         if self._step is not None:
             self._step.memory.clear()
             self._step.memory.update(

@@ -208,6 +208,7 @@ class RobotTeam(ArrayTeam):
             )
         # every driven actuator's action, as the task's terms and observations see it
         self._record = getattr(self._task, "record_action", None)
+        self._end_step = getattr(self._task, "end_step", None)
 
     def _build_observation_map(self) -> None:
         """One index table that gathers every observation from the concatenated signals and
@@ -535,7 +536,10 @@ class RobotTeam(ArrayTeam):
         self._steps += 1
         if self._base is not None and self._steps > self._settle_steps:
             self._track()
-        obs, reward = self._sensed(), float(self._reward(self.physics))
+        reward = float(self._reward(self.physics))
+        if self._end_step is not None:  # e.g. a new velocity command, seen in this obs
+            self._end_step()
+        obs = self._sensed()
         step, substep = self.control_timestep, self._model.opt.timestep
         if diverged(self._data, time_before, step, substep, reward):
             obs, reward = end_diverged(self.env_id, self._steps, obs)

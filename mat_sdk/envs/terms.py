@@ -79,6 +79,7 @@ class Step:
     previous_action: np.ndarray
     control_timestep: float
     scale: RobotScale | None = None  # the robot's own units (None: not a floating base)
+    start_qpos: np.ndarray | None = None  # the pose episodes start from
     # what stateful terms remember within an episode (cleared at its start, checkpointed)
     memory: dict[str, np.ndarray] = field(default_factory=dict)
     _cache: dict = field(default_factory=dict)
@@ -92,14 +93,19 @@ class Step:
 
 @dataclass(frozen=True)
 class VelocityCommand:
-    """A base velocity to follow, sampled per episode from the task's seeded stream: forward
-    `vx` and sideways `vy` (m/s, in the base's frame) and `yaw_rate` (rad/s), each uniform in
-    its (low, high) range. Every agent observes it (signal `command`); a controller passes the
-    operator's command in its place."""
+    """A base velocity to follow, sampled from the task's seeded stream: forward `vx` and
+    sideways `vy` (m/s, in the base's frame) and `yaw_rate` (rad/s), each uniform in its
+    (low, high) range; with `standing`, that share of the commands is zero (stand still, on
+    purpose: a joystick at rest); with `resample_seconds`, a new command every so many
+    seconds within an episode, as an operator moves the stick (else one per episode). Every
+    agent observes it (signal `command`); a controller passes the operator's command in its
+    place."""
 
     vx: tuple[float, float] = (0.0, 0.0)
     vy: tuple[float, float] = (0.0, 0.0)
     yaw_rate: tuple[float, float] = (0.0, 0.0)
+    standing: float = 0.0
+    resample_seconds: float | None = None
     names = ("vx", "vy", "yaw_rate")
 
     LIMIT = 10.0  # m/s and rad/s: far past any legged robot's, so a typo fails loudly
@@ -113,10 +119,23 @@ class VelocityCommand:
                     f"[{low:.4g}, {high:.4g}]"
                 )
             object.__setattr__(self, name, (low, high))
+        if not (is_real(self.standing) and 0 <= self.standing <= 1):
+            raise ValueError(
+                f"VelocityCommand.standing is a share in [0, 1], got {short(self.standing)}"
+            )
+        every = self.resample_seconds
+        if every is not None and not (is_real(every) and math.isfinite(every) and every > 0):
+            raise ValueError(
+                f"VelocityCommand.resample_seconds must be a number of seconds > 0 or None, "
+                f"got {short(every)}"
+            )
 
     def sample(self, random: np.random.RandomState) -> np.ndarray:
         low, high = np.array([getattr(self, name) for name in self.names]).T
-        return low + (high - low) * random.uniform(size=3)
+        command = low + (high - low) * random.uniform(size=3)
+        if self.standing and random.uniform() < self.standing:  # no draw without standing
+            command[:] = 0.0
+        return command
 
     def check(self, command) -> np.ndarray:
         """A fixed command given as an env option (evaluation at one speed): three numbers."""
@@ -358,6 +377,32 @@ class JointLimits(Term):
 
 
 # ------------------------------------------------------------------------- terminations
+@dataclass(frozen=True)
+class StandStill(Term):
+    """At a zero command (speeds under `below`), minus how far the hinge and slide joints are
+    from the start pose (summed, in joint units): a robot told to stand stands, rather than
+    stepping in place (legged_gym's stand_still). 0 while the command asks to move."""
+
+    below: float = 0.1
+    needs_commands = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("below")
+
+    def value(self, step: Step) -> float:
+        if step.command.size and float(np.abs(step.command).max()) >= self.below:
+            return 0.0
+        address = step.cached("joint_qpos", _joint_qpos)
+        return -float(np.abs(step.data.qpos[address] - step.start_qpos[address]).sum())
+
+
+def _joint_qpos(model: mujoco.MjModel) -> np.ndarray:
+    """The qpos addresses of the hinge and slide joints (not a floating base's)."""
+    slide = int(mujoco.mjtJoint.mjJNT_SLIDE)  # slides and hinges come after it
+    return model.jnt_qposadr[model.jnt_type >= slide]
+
+
 @dataclass(frozen=True)
 class TrunkHeight:
     """End the episode when the base is lower than `minimum` (m): it fell."""
