@@ -4,6 +4,7 @@ behind the controller kit's safety states.
     PYTHONPATH=examples mat train go2:walk ... --out runs/go2          # docs/REAL_ROBOTS.md
     mat export runs/go2/checkpoint.pt -o runs/go2/onnx --trust-env-code
     python examples/go2_controller.py runs/go2/onnx --command 0.7 0 0 --seconds 20
+    python examples/go2_controller.py runs/go2/onnx --joystick     # a scripted operator
 
 Every tick (50 Hz) it reads the joint encoders (angle and velocity of the 12 joints, by
 name), the IMU (orientation and angular velocity) and the four foot contact switches, and
@@ -21,6 +22,11 @@ tick's targets and gains, so the loop can be run and measured anywhere; on the r
 gyroscope; foot force > threshold) and `write` sends q, dq, kp, kd, tau per motor. A fault
 here counts as a fall: the simulation puts the robot back on its feet and the operator
 starts the kit again.
+
+`--joystick` plays an operator's scripted sequence instead of one command (stand, forward,
+stop, turn, sideways, back; `JOYSTICK`), through the kit's clamp and rate limit, and reports
+per segment the robot's measured velocity in its heading's frame (the simulation's truth: a
+real robot needs motion capture for it) against the command, after a settling second.
 """
 
 from __future__ import annotations
@@ -39,6 +45,16 @@ from mat_runtime import BundleError, Policy, loop
 from mat_runtime.controller import Controller, Mode, MotorCommand
 
 MODEL = Path(__file__).parent / "robots" / "unitree_go2" / "scene_mjx.xml"
+# (seconds, (vx m/s, vy m/s, yaw rate rad/s)): an operator's session with the stick
+JOYSTICK = (
+    (3.0, (0.0, 0.0, 0.0)),  # stand
+    (5.0, (0.6, 0.0, 0.0)),  # forward
+    (3.0, (0.0, 0.0, 0.0)),  # stop
+    (5.0, (0.0, 0.0, 0.8)),  # turn on the spot
+    (5.0, (0.0, 0.3, 0.0)),  # sideways
+    (5.0, (-0.3, 0.0, 0.0)),  # back
+)
+SETTLE = 1.0  # s after each change of command that the report leaves out
 
 
 class SimulatedGo2:
@@ -81,6 +97,16 @@ class SimulatedGo2:
             "contacts": touching.astype(np.float64),
         }
 
+    def velocity(self) -> np.ndarray:
+        """The base's (vx, vy) in its heading's frame and its yaw rate: what a velocity
+        command names, from the simulation's state."""
+        heading = self.data.xmat[self.base].reshape(3, 3)[:, 0]
+        yaw = np.arctan2(heading[1], heading[0])
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        vx, vy = self.data.qvel[0:2]
+        spin = self.data.xmat[self.base].reshape(3, 3) @ self.data.qvel[3:6]
+        return np.array([cos * vx + sin * vy, -sin * vx + cos * vy, spin[2]])
+
     def write(self, motors: MotorCommand) -> None:
         """Send each motor (in the encoders' order) its target and gains, as the motor driver
         takes them; the simulation then runs one control period."""
@@ -98,7 +124,14 @@ def main() -> None:
         "--command", type=float, nargs=3, default=[0.7, 0.0, 0.0],
         metavar=("VX", "VY", "YAW_RATE"), help="velocity command (m/s, rad/s)",
     )  # fmt: skip
-    parser.add_argument("--seconds", type=float, default=20.0, help="how long to walk")
+    parser.add_argument(
+        "--seconds", type=float,
+        help="how long to walk [20; with --joystick, the script's 26 s, its segments scaled]",
+    )  # fmt: skip
+    parser.add_argument(
+        "--joystick", action="store_true",
+        help="play the scripted operator's sequence (JOYSTICK) instead of --command",
+    )  # fmt: skip
     parser.add_argument("--model", type=Path, default=MODEL, help="the MJCF the robot runs")
     parser.add_argument("--cpu", type=int, help="pin the process to this core")
     args = parser.parse_args()
@@ -131,29 +164,81 @@ def main() -> None:
         kit = Controller(policy, log=print)
     except BundleError as error:
         parser.error(str(error))
-    command = np.array(args.command)
-    state = {"falls": 0, "motors": None}
+    if args.joystick:
+        scale = 1.0 if args.seconds is None else args.seconds / sum(s for s, _ in JOYSTICK)
+        script = tuple((seconds * scale, command) for seconds, command in JOYSTICK)
+    else:
+        script = ((20.0 if args.seconds is None else args.seconds, tuple(args.command)),)
+    ends = np.cumsum([seconds for seconds, _ in script])
+    # per segment, after its settling second: the sums of the measured velocity and of the
+    # command the policy was given (clamped to the trained ranges), their count; its falls
+    sums, given = np.zeros((len(script), 3)), np.zeros((len(script), 3))
+    counts, falls = np.zeros(len(script)), np.zeros(len(script))
+    state = {"falls": 0, "motors": None, "segment": 0, "time": 0.0}
     kit.start()
 
     def act() -> None:
+        segment = min(int(np.searchsorted(ends, state["time"], side="right")), len(script) - 1)
+        state["segment"] = segment
+        command = np.array(script[segment][1])
         state["motors"] = kit.tick(robot.read(), robot.data.time, command)
 
     def step() -> None:
         robot.write(state["motors"])
+        state["time"] += wiring.control_timestep
+        segment = state["segment"]
+        began = ends[segment] - script[segment][0]
+        if kit.mode is Mode.POLICY and state["time"] - began > SETTLE:
+            sums[segment] += robot.velocity()
+            given[segment] += kit.command
+            counts[segment] += 1
         if kit.mode is Mode.DAMPING:  # a guard tripped: a fall, or about to be one
             state["falls"] += 1
+            falls[segment] += 1
             robot.reset()
             kit.start()
 
-    ticks = loop.run(act, step, 1 / wiring.control_timestep, args.seconds, warmup=0.0)
+    seconds = float(ends[-1])
+    ticks = loop.run(act, step, 1 / wiring.control_timestep, seconds, warmup=0.0)
     travelled = float((robot.data.xpos[robot.base] - robot.start)[0])
     speed = travelled / max(robot.data.time, 1e-9)
     print(f"{policy}\n{ticks.summary()}")
-    print(
-        f"command {args.command}: falls {state['falls']}; {travelled:.2f} m forward in the last "
-        f"{robot.data.time:.1f} s, its stand-up included ({speed:.2f} m/s)"
-    )
+    if args.joystick:
+        _report(
+            script, sums / counts[:, None].clip(1), given / counts[:, None].clip(1), counts, falls
+        )
+    else:
+        print(
+            f"command {args.command}: falls {state['falls']}; {travelled:.2f} m forward in the "
+            f"last {robot.data.time:.1f} s, its stand-up included ({speed:.2f} m/s)"
+        )
     assert "torch" not in {m for m, module in sys.modules.items() if module}
+
+
+def _report(script, measured, given, counts, falls) -> None:
+    """Per segment: the operator's command, what the policy was given (clamped to the trained
+    ranges), the measured (vx, vy, yaw rate), the error against the operator's, falls."""
+    print("seconds  operator (vx, vy, yaw)  given to the policy   measured"
+          "                |error| lin   yaw  falls")  # fmt: skip
+    linear, yaw = [], []
+    rows = zip(script, measured, given, counts, falls, strict=True)
+    for (seconds, command), velocity, sent, count, fell in rows:
+        if not count:
+            print(f"{seconds:7.1f}  {command!s:22} (no policy time after settling)   {int(fell)}")
+            continue
+        error = np.abs(velocity - np.array(command))
+        linear.append(float(np.hypot(*error[:2])))
+        yaw.append(float(error[2]))
+        shown = ["(" + ", ".join(f"{v:+.2f}" for v in x) + ")" for x in (sent, velocity)]
+        print(
+            f"{seconds:7.1f}  {command!s:22} {shown[0]:21} {shown[1]:23} "
+            f"{linear[-1]:10.3f} {yaw[-1]:5.3f}  {int(fell)}"
+        )
+    if linear:
+        print(
+            f"mean |error| over {len(linear)} segments: {np.mean(linear):.3f} m/s, "
+            f"{np.mean(yaw):.3f} rad/s; falls {int(falls.sum())}"
+        )
 
 
 if __name__ == "__main__":

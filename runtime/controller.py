@@ -184,6 +184,12 @@ class Controller:
         """Every motor soft, now, until `start` again."""
         self._enter(Mode.DAMPING, reason)
 
+    @property
+    def command(self) -> np.ndarray:
+        """The velocity command the policy was last given: the operator's, clamped to the
+        trained ranges and rate limited (a copy)."""
+        return self._command.copy()
+
     # ------------------------------------------------------------------ each tick
     def tick(
         self,

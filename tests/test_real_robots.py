@@ -201,6 +201,25 @@ def test_the_go2_controller_runs_without_torch(go2_bundle):
     assert "falls" in run.stdout and re.search(r"late ticks: \d+", run.stdout)
 
 
+def test_the_go2_controller_plays_a_scripted_joystick_and_reports_tracking(go2_bundle):
+    """The script at a quarter of its length (real time): a row per segment, the operator's
+    command, what the kit gave the policy (clamped to the trained ranges) and the measured
+    velocity where the policy had a settled moment, and the summary."""
+    run = subprocess.run(
+        [sys.executable, str(REPO / "examples" / "go2_controller.py"), str(go2_bundle),
+         "--joystick", "--seconds", "6.5"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    rows = re.findall(r"^\s+\d+\.\d+\s+\(([^)]*)\)(.*)$", run.stdout, re.M)
+    operator = [tuple(float(v) for v in command.split(",")) for command, _ in rows]
+    assert operator == [(0, 0, 0), (0.6, 0, 0), (0, 0, 0), (0, 0, 0.8), (0, 0.3, 0), (-0.3, 0, 0)]
+    turn = re.findall(r"\(([^)]*)\)", rows[3][1])
+    if turn:  # the go2:walk policy was trained on no yaw rate: the kit gave it 0
+        assert float(turn[0].split(",")[2]) == 0.0
+    assert "mean |error| over" in run.stdout or "no policy time" in run.stdout
+
+
 def test_a_model_without_a_camera_is_filmed_by_a_following_camera():
     team = _team(seed=0)
     team.reset(seed=0)
