@@ -87,7 +87,8 @@ class CheckpointPolicy:
 class Episodes:
     """Full episodes of a policy: per episode its return, length, whether it ended early (a
     termination such as a fall, not the time limit) and, for a robot with a floating base,
-    its mean forward speed (m/s along the start heading; NaN otherwise)."""
+    its mean forward speed (m/s along the start heading, which a turning robot covers less
+    of; NaN otherwise) and its velocity in its own heading's frame (`tracking`)."""
 
     returns: list[float]
     lengths: list[int]
@@ -127,6 +128,13 @@ class Episodes:
         if not np.isnan(self.speeds).all():
             line += (
                 f"; forward speed {np.nanmean(self.speeds):.3f} +- {np.nanstd(self.speeds):.3f} m/s"
+            )
+        moving = np.array(self.tracking, dtype=float).reshape(-1, 3)
+        if len(moving) and not np.isnan(moving).all():  # the heading's frame, after 1 s
+            vx, vy, yaw = np.nanmean(moving, axis=0)
+            line += (
+                f"; in its heading's frame vx {vx:.3f} +- {np.nanstd(moving[:, 0]):.3f} m/s, "
+                f"vy {vy:+.3f} m/s, yaw rate {yaw:+.3f} rad/s"
             )
         return line
 
