@@ -66,9 +66,10 @@ def main(groups, sweeps, episodes, env_options, out: Path) -> None:
                 done = {float(v): e for v, e in results.get(key, [])}
                 todo = [v for v in values if v not in done]
                 if todo:
-                    loaded = CheckpointPolicy.from_checkpoint(path)
+                    # the user named these files
+                    loaded = CheckpointPolicy.from_checkpoint(path, trust_env_code=True)
                     for value, result in robustness.sweep(
-                        loaded, factor, todo, episodes, trust_env_code=True, **options
+                        loaded, factor, todo, episodes, **options
                     ):
                         done[value] = result.__dict__
                         click.echo(f"{path} {factor}={value:g}: {result.summary()}", err=True)

@@ -28,12 +28,18 @@ class CheckpointPolicy:
     obs_norm: RunningMeanStd | None
     training: TrainConfig  # how it was trained: its env, faults and options among it
     source: str = "the checkpoint"  # where the policy came from, for messages
+    # the user vouched for the file: a `module:function` env id it records may be imported
+    # to evaluate it (`envs.check_trusted`)
+    trusted: bool = False
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path) -> CheckpointPolicy:
+    def from_checkpoint(cls, path: str | Path, trust_env_code: bool = False) -> CheckpointPolicy:
+        """The policy a checkpoint holds; `trust_env_code`: the user's word that the env code
+        it names may run (its `module:function` id imported when evaluating on it)."""
         payload = checkpoint.load(path)
         policy, norm = checkpoint.restore_policy(payload, path)
-        return cls(policy, norm, checkpoint.recorded_config(payload), str(path))
+        training = checkpoint.recorded_config(payload)
+        return cls(policy, norm, training, str(path), trusted=trust_env_code)
 
     def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):
         """Actions for raw observations of `team` (an env with its agents and sizes): an
@@ -156,39 +162,36 @@ def evaluate(
     loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
-    faults: Mapping[str, str] | None = None,
+    faults: envs.FaultsLike = None,
     deterministic: bool = True,
     seed: int = 10_000,
     video: str | Path | None = None,
-    trust_env_code: bool = False,
     **env_options: Any,
 ) -> list[float]:
     """Returns of `episodes` full episodes (`evaluate_episodes`)."""
     return evaluate_episodes(
-        loaded, episodes, env_id, faults, deterministic, seed, video, trust_env_code,
-        **env_options,
-    ).returns  # fmt: skip
+        loaded, episodes, env_id, faults, deterministic, seed, video, **env_options
+    ).returns
 
 
 def evaluate_episodes(
     loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
-    faults: Mapping[str, str] | None = None,
+    faults: envs.FaultsLike = None,
     deterministic: bool = True,
     seed: int = 10_000,
     video: str | Path | None = None,
-    trust_env_code: bool = False,
     **env_options: Any,
 ) -> Episodes:
     """`episodes` full episodes, one per env copy, each copy's first episode; `env_options`
     override the trained env's (e.g. a robot's fixed `command`).
 
     Without `env_id`, the env the policy was trained on; a `module:function` id that the
-    checkpoint records is imported only with `trust_env_code=True`."""
+    checkpoint records is imported only if the user trusted it (`from_checkpoint`)."""
     trained = loaded.training.env
     if env_id is None:
-        envs.check_trusted([trained.id], trust_env_code, loaded.source)
+        envs.check_trusted([trained.id], loaded.trusted, loaded.source)
     env_id = env_id or trained.id
     faults = trained.faults if faults is None else faults
     options = {**trained.options, **env_options}

@@ -42,7 +42,6 @@ def sweep(
     values: Sequence[float],
     episodes: int = 10,
     seed: int = 10_000,
-    trust_env_code: bool = False,
     **env_options: Any,
 ) -> Points:
     """Episodes at each value of `factor`, on the policy's robot with that factor alone (the
@@ -50,9 +49,7 @@ def sweep(
     points = []
     for value in values:
         options = {**env_options, "randomize": setting(factor, value).to_dict()}
-        result = evaluate_episodes(
-            loaded, episodes, seed=seed, trust_env_code=trust_env_code, **options
-        )
+        result = evaluate_episodes(loaded, episodes, seed=seed, **options)
         points.append((float(value), result))
     return points
 

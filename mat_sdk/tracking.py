@@ -59,16 +59,14 @@ def track(
     commands: Sequence[Sequence[float]] = JOYSTICK_GRID,
     episodes: int = 5,
     seed: int = 10_000,
-    trust_env_code: bool = False,
     **options: Any,
 ) -> list[Tracked]:
     """Each command held for `episodes` episodes (`evaluate_episodes` with `command=`)."""
     rows = []
     for command in commands:
         result = evaluate_episodes(
-            loaded, episodes, seed=seed, trust_env_code=trust_env_code,
-            command=[float(v) for v in command], **options,
-        )  # fmt: skip
+            loaded, episodes, seed=seed, command=[float(v) for v in command], **options
+        )
         if np.isnan(result.speeds).all():
             raise ValueError("--grid measures a floating-base robot's velocity; this env has none")
         measured = np.array(result.tracking, dtype=np.float64)

@@ -88,8 +88,9 @@ def add(
         with files.writing(target):
             shutil.copyfile(source, staging / "checkpoint.pt")
         export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=trust_env_code)
-        loaded = CheckpointPolicy.from_checkpoint(staging / "checkpoint.pt")
-        returns = evaluate(loaded, episodes, seed=EVALUATION_SEED, trust_env_code=trust_env_code)
+        copied = staging / "checkpoint.pt"
+        loaded = CheckpointPolicy.from_checkpoint(copied, trust_env_code=trust_env_code)
+        returns = evaluate(loaded, episodes, seed=EVALUATION_SEED)
         options = dict(train.env.options)
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)
         card = {

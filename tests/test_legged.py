@@ -207,8 +207,8 @@ def test_mat_eval_breaks_the_reward_down_by_term(tmp_path):
 
     with Trainer("quadrupeds:a1", **TINY) as trainer:
         path = trainer.save(tmp_path / "a1.pt")
-    loaded = CheckpointPolicy.from_checkpoint(path)
-    episodes = evaluate_episodes(loaded, 2, episode_limit=30, trust_env_code=True)
+    loaded = CheckpointPolicy.from_checkpoint(path, trust_env_code=True)
+    episodes = evaluate_episodes(loaded, 2, episode_limit=30)
     assert set(episodes.terms) == {*(t.name for t in WALK.reward), "floor"}
     steps = sum(episodes.lengths)
     assert sum(episodes.terms.values()) * steps == pytest.approx(sum(episodes.returns), rel=1e-6)

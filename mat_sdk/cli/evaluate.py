@@ -62,18 +62,17 @@ def evaluate(
     """
     from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
 
-    loaded = CheckpointPolicy.from_checkpoint(checkpoint)
+    loaded = CheckpointPolicy.from_checkpoint(checkpoint, trust_env_code=trust_env_code)
     if plot and not (sweep or grid):
         raise click.UsageError("--plot draws a sweep or a grid: give --sweep or --grid too")
     if sweep and grid:
         raise click.UsageError("--sweep and --grid are two reports: give one")
     if grid:
-        _grid(loaded, plot, episodes, seed, trust_env_code, env_id, faults, stochastic, video,
-              env_options)  # fmt: skip
+        _grid(loaded, plot, episodes, seed, env_id, faults, stochastic, video, env_options)
         return
     if sweep:
-        _sweep(loaded, sweep, plot, episodes, seed, trust_env_code, env_id, faults, stochastic,
-               video, env_options)  # fmt: skip
+        _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, video,
+               env_options)  # fmt: skip
         return
     result = evaluate_episodes(
         loaded,
@@ -83,7 +82,6 @@ def evaluate(
         deterministic=not stochastic,
         seed=seed,
         video=video,
-        trust_env_code=trust_env_code,
         **parse_settings(env_options, param_hint="--env-option"),
     )
     name = env_id or loaded.training.env.id
@@ -94,7 +92,7 @@ def evaluate(
         click.echo(f"video: {video}")
 
 
-def _sweep(loaded, sweep, plot, episodes, seed, trust, env_id, faults, stochastic, video, options):
+def _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, video, options):
     from mat_sdk import robustness
 
     for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
@@ -105,7 +103,7 @@ def _sweep(loaded, sweep, plot, episodes, seed, trust, env_id, faults, stochasti
     if not sep:
         raise click.BadParameter(f"{sweep!r}: use FACTOR=VALUES", param_hint="--sweep")
     points = robustness.sweep(
-        loaded, factor, robustness.parse_values(values), episodes, seed, trust,
+        loaded, factor, robustness.parse_values(values), episodes, seed,
         **parse_settings(options, param_hint="--env-option"),
     )  # fmt: skip
     click.echo(robustness.table(points, factor))
@@ -113,7 +111,7 @@ def _sweep(loaded, sweep, plot, episodes, seed, trust, env_id, faults, stochasti
         click.echo(f"plot: {robustness.plot({'policy': [points]}, factor, plot)}")
 
 
-def _grid(loaded, plot, episodes, seed, trust, env_id, faults, stochastic, video, options):
+def _grid(loaded, plot, episodes, seed, env_id, faults, stochastic, video, options):
     from mat_sdk import tracking
 
     for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
@@ -123,7 +121,7 @@ def _grid(loaded, plot, episodes, seed, trust, env_id, faults, stochastic, video
     settings = parse_settings(options, param_hint="--env-option")
     if "command" in settings:
         raise click.UsageError("--grid sets the command itself, one per row; drop command=")
-    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, trust, **settings)
+    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, **settings)
     click.echo(tracking.table(rows))
     if plot:
         click.echo(f"plot: {tracking.plot(rows, plot)}")
