@@ -5,6 +5,7 @@ behind the controller kit's safety states.
     mat export runs/go2/checkpoint.pt -o runs/go2/onnx --trust-env-code
     python examples/go2_controller.py runs/go2/onnx --command 0.7 0 0 --seconds 20
     python examples/go2_controller.py runs/go2/onnx --joystick     # a scripted operator
+    python examples/go2_dds_sim.py & python examples/go2_controller.py runs/go2/onnx --dds
 
 Every tick (50 Hz) it reads the joint encoders (angle and velocity of the 12 joints, by
 name), the IMU (orientation and angular velocity) and the four foot contact switches, and
@@ -23,6 +24,11 @@ gyroscope; foot force > threshold) and `write` sends q, dq, kp, kd, tau per moto
 here counts as a fall: the simulation puts the robot back on its feet and the operator
 starts the kit again.
 
+`--dds` drives a robot over its own low-level interface instead (`mat_runtime.unitree`: DDS
+topics rt/lowstate and rt/lowcmd, Unitree's message types, motors in the SDK's order, which
+the kit maps by joint name): the simulated Go2 of examples/go2_dds_sim.py in its own process,
+or a Go2 on the network. The robot is not reset there: after a fault the kit holds damping.
+
 `--joystick` plays an operator's scripted sequence instead of one command (stand, forward,
 stop, turn, sideways, back; `JOYSTICK`), through the kit's clamp and rate limit, and reports
 per segment the robot's measured velocity in its heading's frame (the simulation's truth: a
@@ -33,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 if __name__ == "__main__":  # prove the point: importing torch now raises ImportError
@@ -81,21 +88,22 @@ class SimulatedGo2:
         mujoco.mj_forward(self.model, self.data)
         self.start = self.data.xpos[self.base].copy()
 
-    def read(self) -> dict[str, np.ndarray]:
-        """What the robot measures: encoders, IMU (as gravity's direction and the gyro, in the
-        IMU's frame) and foot contacts."""
+    def read(self) -> tuple[dict[str, np.ndarray], float]:
+        """What the robot measures, and when: encoders, IMU (as gravity's direction and the
+        gyro, in the IMU's frame) and foot contacts; the simulation's clock."""
         data = self.data
         frame = data.site_xmat[self.imu].reshape(3, 3)
         base = data.xmat[self.base].reshape(3, 3)
         spin = base @ data.qvel[3:6]  # the free joint's angular velocity, in the world
         touching = np.isin(self.feet, np.concatenate([data.contact.geom1, data.contact.geom2]))
-        return {
+        reading = {
             "joint_pos": data.qpos[self.qpos].copy(),
             "joint_vel": data.qvel[self.qvel].copy(),
             "gravity": frame.T @ np.array([0.0, 0.0, -1.0]),
             "gyro": frame.T @ spin,
             "contacts": touching.astype(np.float64),
         }
+        return reading, float(data.time)
 
     def velocity(self) -> np.ndarray:
         """The base's (vx, vy) in its heading's frame and its yaw rate: what a velocity
@@ -133,6 +141,10 @@ def main() -> None:
         help="play the scripted operator's sequence (JOYSTICK) instead of --command",
     )  # fmt: skip
     parser.add_argument("--model", type=Path, default=MODEL, help="the MJCF the robot runs")
+    parser.add_argument(
+        "--dds", action="store_true",
+        help="drive a robot over DDS (examples/go2_dds_sim.py, or a Go2) instead of in-process",
+    )  # fmt: skip
     parser.add_argument("--cpu", type=int, help="pin the process to this core")
     args = parser.parse_args()
 
@@ -148,22 +160,7 @@ def main() -> None:
             f"{args.bundle} does not observe the Go2's joint encoders and foot contacts (a "
             "go2:walk bundle does)"
         )
-    try:
-        robot = SimulatedGo2(
-            args.model, wiring.signals["joint_pos"], wiring.signals["contacts"],
-            wiring.control_timestep,
-        )  # fmt: skip
-    except KeyError as error:  # MuJoCo's lookup by name
-        parser.error(f"{args.bundle} names what {args.model.name} does not have: {error}")
-    if wiring.ctrl_index.max(initial=-1) >= robot.model.nu:
-        parser.error(
-            f"{args.bundle} drives actuator {wiring.ctrl_index.max()}, and {args.model.name} has "
-            f"{robot.model.nu}"
-        )
-    try:
-        kit = Controller(policy, log=print)
-    except BundleError as error:
-        parser.error(str(error))
+    robot, kit = _dds(parser, policy) if args.dds else _simulated(parser, policy, args.model)
     if args.joystick:
         scale = 1.0 if args.seconds is None else args.seconds / sum(s for s, _ in JOYSTICK)
         script = tuple((seconds * scale, command) for seconds, command in JOYSTICK)
@@ -174,35 +171,41 @@ def main() -> None:
     # command the policy was given (clamped to the trained ranges), their count; its falls
     sums, given = np.zeros((len(script), 3)), np.zeros((len(script), 3))
     counts, falls = np.zeros(len(script)), np.zeros(len(script))
-    state = {"falls": 0, "motors": None, "segment": 0, "time": 0.0}
+    state = {"falls": 0, "motors": None, "segment": 0, "time": 0.0, "down": False}
     kit.start()
 
     def act() -> None:
         segment = min(int(np.searchsorted(ends, state["time"], side="right")), len(script) - 1)
         state["segment"] = segment
         command = np.array(script[segment][1])
-        state["motors"] = kit.tick(robot.read(), robot.data.time, command)
+        state["motors"] = kit.tick(*robot.read(), command)
 
     def step() -> None:
         robot.write(state["motors"])
         state["time"] += wiring.control_timestep
         segment = state["segment"]
         began = ends[segment] - script[segment][0]
-        if kit.mode is Mode.POLICY and state["time"] - began > SETTLE:
+        if not args.dds and kit.mode is Mode.POLICY and state["time"] - began > SETTLE:
             sums[segment] += robot.velocity()
             given[segment] += kit.command
             counts[segment] += 1
-        if kit.mode is Mode.DAMPING:  # a guard tripped: a fall, or about to be one
+        if kit.mode is Mode.DAMPING and not state["down"]:  # a guard tripped: a fall, or close
             state["falls"] += 1
             falls[segment] += 1
-            robot.reset()
-            kit.start()
+            if args.dds:  # a robot out there is not put back on its feet by us
+                state["down"] = True
+            else:
+                robot.reset()
+                kit.start()
 
     seconds = float(ends[-1])
     ticks = loop.run(act, step, 1 / wiring.control_timestep, seconds, warmup=0.0)
+    print(f"{policy}\n{ticks.summary()}")
+    if args.dds:  # the robot's side knows where it went
+        print(f"falls {state['falls']}; modes: {kit.mode.value} at the end")
+        return
     travelled = float((robot.data.xpos[robot.base] - robot.start)[0])
     speed = travelled / max(robot.data.time, 1e-9)
-    print(f"{policy}\n{ticks.summary()}")
     if args.joystick:
         _report(
             script, sums / counts[:, None].clip(1), given / counts[:, None].clip(1), counts, falls
@@ -213,6 +216,44 @@ def main() -> None:
             f"last {robot.data.time:.1f} s, its stand-up included ({speed:.2f} m/s)"
         )
     assert "torch" not in {m for m, module in sys.modules.items() if module}
+
+
+def _simulated(parser, policy: Policy, model: Path) -> tuple[SimulatedGo2, Controller]:
+    """The Go2 simulated in this process, with the kit on the bundle's own motor order."""
+    wiring = policy.wiring
+    try:
+        robot = SimulatedGo2(
+            model, wiring.signals["joint_pos"], wiring.signals["contacts"],
+            wiring.control_timestep,
+        )  # fmt: skip
+    except KeyError as error:  # MuJoCo's lookup by name
+        parser.error(f"{policy.path} names what {model.name} does not have: {error}")
+    if wiring.ctrl_index.max(initial=-1) >= robot.model.nu:
+        parser.error(
+            f"{policy.path} drives actuator {wiring.ctrl_index.max()}, and {model.name} has "
+            f"{robot.model.nu}"
+        )
+    try:
+        return robot, Controller(policy, log=print)
+    except BundleError as error:
+        parser.error(str(error))
+
+
+def _dds(parser, policy: Policy, wait: float = 10.0):
+    """A robot over DDS, once its first state arrived, and the kit on the SDK's motor order."""
+    from mat_runtime.unitree import GO2_JOINTS, Go2LowLevel
+
+    try:
+        robot = Go2LowLevel(feet=tuple(policy.wiring.signals["contacts"]))
+        kit = Controller(policy, motor_order=GO2_JOINTS, log=print)
+    except (ValueError, BundleError) as error:
+        parser.error(str(error))
+    deadline = time.monotonic() + wait
+    while robot.read()[0] is None:
+        if time.monotonic() > deadline:
+            parser.error(f"no robot state on rt/lowstate within {wait:g} s: is the robot on?")
+        time.sleep(0.01)
+    return robot, kit
 
 
 def _report(script, measured, given, counts, falls) -> None:

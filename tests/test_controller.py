@@ -35,7 +35,7 @@ def _run(kit: Controller, robot: DrivenGo2, ticks: int, command=(0.5, 0.0, 0.0),
     """`ticks` ticks of kit and robot; `tampered`: signal -> function changing its reading."""
     motors = []
     for _ in range(ticks):
-        reading = robot.read()
+        reading, _ = robot.read()
         for name, change in tampered.items():
             reading[name] = change(reading[name])
         motor = kit.tick(reading, robot.data.time, command)
@@ -111,7 +111,7 @@ def test_stale_readings_late_ticks_and_the_operator_stop_end_in_damping(go2_bund
     robot = DrivenGo2(policy)
     kit.start()
     _run(kit, robot, 15)
-    reading = robot.read()
+    reading, _ = robot.read()
     for k in range(5):  # a new state, then the same four times: the robot stopped publishing
         kit.tick(reading, robot.data.time, (0.5, 0, 0))
         assert kit.mode is (Mode.POLICY if k < 4 else Mode.DAMPING)
@@ -122,7 +122,7 @@ def test_stale_readings_late_ticks_and_the_operator_stop_end_in_damping(go2_bund
     _run(kit, robot, 15)
     for k in range(3):
         robot.data.time += 0.02
-        kit.tick(robot.read(), robot.data.time, (0.5, 0, 0), late=True)
+        kit.tick(*robot.read(), (0.5, 0, 0), late=True)
         assert kit.mode is (Mode.POLICY if k < 2 else Mode.DAMPING)
     assert kit.transitions[-1].reason == "3 late ticks in a row"
 
@@ -156,7 +156,7 @@ def test_motors_in_the_sdks_order_are_mapped_by_joint_name(go2_bundle):
     ours.start(), theirs.start()
     permute = [ours.joints.index(name) for name in order]
     for _ in range(20):
-        reading = robot.read()
+        reading, _ = robot.read()
         mine = ours.tick(reading, robot.data.time, (0.5, 0, 0))
         sdk = {**reading, "joint_pos": reading["joint_pos"][permute],
                "joint_vel": reading["joint_vel"][permute]}  # fmt: skip

@@ -177,7 +177,7 @@ def test_the_controller_builds_the_envs_observation_from_the_robots_sensors(go2_
     obs, last = team.reset(seed=0), np.zeros(12)
     rng = np.random.default_rng(0)
     for _ in range(25):
-        built = wiring.observe(**robot.read(), command=[0.5, 0.0, 0.2], last_action=last)
+        built = wiring.observe(**robot.read()[0], command=[0.5, 0.0, 0.2], last_action=last)
         np.testing.assert_allclose(built, obs, rtol=1e-5, atol=1e-5)
         actions = rng.uniform(-1, 1, (4, 3))
         obs, *_ = team.step(actions)
