@@ -24,6 +24,7 @@ from unittest import mock
 import torch
 
 from mat_export import parity
+from mat_export.engines import ENGINES, openvino_parity
 from mat_export.errors import ExportError
 from mat_export.graphs import (
     DecentralisedStepGraph,
@@ -51,6 +52,7 @@ def export(
     force: bool = False,
     agent_counts=AGENT_COUNTS,
     trust_env_code: bool = False,
+    engines: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Write the bundle and return its manifest.
 
@@ -58,8 +60,13 @@ def export(
     `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),
     which the runtime uses when it is given exactly N agents. The exporter builds the env
     the checkpoint records (its wiring goes into the manifest); a `module:function` env id is
-    imported only with `trust_env_code=True`.
+    imported only with `trust_env_code=True`. `engines=("openvino",)` also runs every graph
+    in OpenVINO against ONNX Runtime (`engines.openvino_parity`; the manifest's
+    `parity.openvino`).
     """
+    unknown = sorted(set(engines) - set(ENGINES))
+    if unknown:
+        raise ValueError(f"engines: {unknown} unknown; valid: {', '.join(ENGINES)}")
     out_dir, checkpoint_path = Path(out_dir), checkpoint.locate(checkpoint_path)  # or zoo:NAME
     check_target(out_dir, force, checkpoint_path)
     payload = checkpoint.load(checkpoint_path)
@@ -67,7 +74,7 @@ def export(
     built = staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
         with files.writing(out_dir):
-            written = _build(payload, checkpoint_path, built, agent_counts)
+            written = _build(payload, checkpoint_path, built, agent_counts, engines)
             umask = os.umask(0)
             os.umask(umask)
             built.chmod(0o777 & ~umask)  # mkdtemp makes 0700
@@ -77,7 +84,9 @@ def export(
     return written
 
 
-def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) -> dict[str, Any]:
+def _build(
+    payload: dict, checkpoint_path: Path, staging: Path, agent_counts, engines
+) -> dict[str, Any]:
     """Every graph and the manifest into `staging`, held to torch's output; the manifest."""
     policy, normalizer, value_scale, obs_norm = _rebuild(payload)
     team = _check_env(payload, policy.cfg)
@@ -118,6 +127,14 @@ def _build(payload: dict, checkpoint_path: Path, staging: Path, agent_counts) ->
             "no bundle written"
         )
     written["parity"] = measured
+    if "openvino" in engines:  # what a robot's Intel CPU would run, held to ORT
+        second = openvino_parity(staging, sorted({int(n) for n in measured["max_abs_diff"]}))
+        if second is None:
+            raise ExportError(
+                "engines=openvino: OpenVINO is not installed (pip install 'mat-sdk[openvino]'); "
+                "no bundle written"
+            )
+        written["parity"]["openvino"] = second
     for name in graphs:
         finish_graph(staging / name, written)
     written["graphs"] = {

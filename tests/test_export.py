@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import re
 
 import numpy as np
 import onnx
@@ -312,3 +313,36 @@ def test_every_graph_runs_in_onnxs_reference_evaluator_at_parity(tmp_path, env_i
             for name, a, b in zip([o.name for o in session.get_outputs()], want, got, strict=True):
                 assert a.shape == b.shape, (path.name, agents, name)
                 assert np.abs(a - b).max() <= 1e-4, (path.name, agents, name)
+
+
+def test_openvino_runs_the_bundle_at_parity_with_ort_and_names_what_it_refuses(tmp_path):
+    """A second engine (OpenVINO, CPU, f32), as `mat export` checks it when installed: the
+    encoder, the decoder step and the specialised control step run at parity on every count;
+    whatever the engine refuses is named with its reason, never passed over."""
+    pytest.importorskip("openvino")
+    checkpoint = make_checkpoint(tmp_path / "c.pt", "hopper-2x2", "mat")
+    manifest = export(checkpoint, tmp_path / "bundle", engines=("openvino",))
+    second = manifest["parity"]["openvino"]
+    n = manifest["agents"]["trained"]
+    assert {"encoder.onnx", "decoder_step.onnx", f"decode_n{n}.onnx"} <= set(second["max_abs_diff"])
+    assert max(second["max_abs_diff"].values()) <= 1e-4
+    refused = [what for what in second["refused"] if not what.startswith("decode.onnx")]
+    assert refused == [], second["refused"]  # only the any-count loop graph, at some counts
+    assert all(len(reason) > 20 for reason in second["refused"].values())  # the engine's words
+
+
+def test_mat_export_reports_the_second_engine_and_refuses_an_unknown_one(tmp_path):
+    """The command line, on a discrete policy (its choices' mask an input of every graph)."""
+    from click.testing import CliRunner
+
+    from mat_sdk.cli import main
+
+    pytest.importorskip("openvino")
+    checkpoint = make_checkpoint(tmp_path / "c.pt", "coordination-3", "mat")
+    run = CliRunner().invoke(
+        main, ["export", str(checkpoint), "-o", str(tmp_path / "b"), "--engine", "openvino"]
+    )
+    assert run.exit_code == 0, run.output
+    assert re.search(r"openvino [\d.]+ \(CPU, f32\) vs ORT max abs diff: decode\.onnx", run.output)
+    with pytest.raises(ValueError, match=r"engines: \['tensorrt'\] unknown; valid: openvino"):
+        export(checkpoint, tmp_path / "c", engines=("tensorrt",))
