@@ -58,17 +58,22 @@ def _connected(go2_bundle, domain: int) -> tuple[Controller, Go2LowLevel]:
     return kit, robot
 
 
+def _session(go2_bundle, seconds: float, *faults: str) -> tuple[Controller, list[dict]]:
+    """The kit driving the simulated robot (with `faults`) for `seconds`; its ticks."""
+    process, domain = _robot(*faults)
+    try:
+        kit, robot = _connected(go2_bundle, domain)
+        return kit, _drive(kit, robot, seconds)
+    finally:
+        process.kill()
+        process.communicate()
+
+
 def test_the_kit_stands_the_robot_up_over_dds_and_goes_soft_when_its_state_stops(go2_bundle):
     """Across the process boundary: the stand phase moves the measured joints to the start
     pose without a jump; then the robot stops publishing (`--freeze-after`) and the kit is in
     damping within its stale limit (5 ticks) and a tick or two of delivery."""
-    process, domain = _robot("--freeze-after", "3.0")
-    try:
-        kit, robot = _connected(go2_bundle, domain)
-        ticks = _drive(kit, robot, 4.5)
-    finally:
-        process.kill()
-        process.communicate()
+    kit, ticks = _session(go2_bundle, 4.5, "--freeze-after", "3.0")
     modes = [t["mode"] for t in ticks]
     assert modes[0] is Mode.STAND and Mode.POLICY in modes, modes
     stood = modes.index(Mode.POLICY)
@@ -86,13 +91,7 @@ def test_the_kit_stands_the_robot_up_over_dds_and_goes_soft_when_its_state_stops
 
 
 def test_a_nan_from_the_robots_imu_makes_the_kit_go_soft_at_once(go2_bundle):
-    process, domain = _robot("--nan-imu-after", "2.5")
-    try:
-        kit, robot = _connected(go2_bundle, domain)
-        ticks = _drive(kit, robot, 4.0)
-    finally:
-        process.kill()
-        process.communicate()
+    kit, ticks = _session(go2_bundle, 4.0, "--nan-imu-after", "2.5")
     fault = next(t for t in kit.transitions if t.target is Mode.DAMPING)
     assert "gyro" in fault.reason and "nan" in fault.reason.lower(), fault.reason
     first_nan = next(k for k, t in enumerate(ticks) if np.isnan(t["reading"]["gyro"]).any())
