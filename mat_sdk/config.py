@@ -399,7 +399,17 @@ class TrainConfig:
         if not isinstance(stored, Mapping):
             raise ValueError(f"must be a mapping, got {type(stored).__name__}")
         if not isinstance(stored.get("env"), Mapping):  # the flat layout
-            return cls.from_options({"recipe": "paper", **stored})
+            options = {"recipe": "paper", **stored}
+        else:
+            options = cls._flattened(stored)
+        missing = [name for name in ("env", "algo") if name not in options]
+        if missing:  # a file names what it trained on: no default stands in for it
+            raise ValueError(f"names no {' and no '.join(missing)}")
+        return cls.from_options(options)
+
+    @staticmethod
+    def _flattened(stored: Mapping[str, Any]) -> dict[str, Any]:
+        """`to_dict`'s layout as flat options; ValueError for a field this SDK does not know."""
         options: dict[str, Any] = {}
         for key, value in stored.items():
             if key in PARTS:
@@ -414,7 +424,7 @@ class TrainConfig:
                 options[key] = value
             else:
                 raise ValueError(f"has fields this SDK does not know ({[key]})")
-        return cls.from_options(options)
+        return options
 
     # ---------------------------------------------------------------- what it builds
     def model_config(self, env) -> ModelConfig:
@@ -468,4 +478,4 @@ def _fields(part: Any) -> dict[str, Any]:
     return {f.name: getattr(part, f.name) for f in fields(part)}
 
 
-__all__ = ["EnvConfig", "NetworkConfig", "PPOConfig", "RunConfig", "TrainConfig", "replace"]
+__all__ = ["EnvConfig", "NetworkConfig", "PPOConfig", "RunConfig", "TrainConfig"]

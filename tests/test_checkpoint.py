@@ -49,6 +49,10 @@ EDITS = {
         lambda p: p["config"]["train"]["env"].update(id=["x"]),
         "config.train.env.id must be",
     ),
+    "no algo": (  # no default stands in for what the file trained
+        lambda p: p["config"]["train"].pop("algo"),
+        r"config.train is invalid \(names no algo\)",
+    ),
     "no normaliser": (lambda p: p.pop("obs_norm"), "obs_norm must hold the tensors mean, var"),
     "bad progress": (lambda p: p.update(progress={"steps": -1}), "progress must hold"),
     "None fault": (  # a name MuJoCo's lookup would crash on

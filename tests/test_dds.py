@@ -96,3 +96,8 @@ def test_a_nan_from_the_robots_imu_makes_the_kit_go_soft_at_once(go2_bundle):
     assert "gyro" in fault.reason and "nan" in fault.reason.lower(), fault.reason
     first_nan = next(k for k, t in enumerate(ticks) if np.isnan(t["reading"]["gyro"]).any())
     assert fault.tick == first_nan + 1  # the tick that read it (ticks count from 1)
+
+
+def test_feet_not_named_after_the_go2s_legs_are_refused_naming_them():
+    with pytest.raises(ValueError, match=r"feet are named after the Go2's legs .*got \['paw'\]"):
+        Go2LowLevel(feet=("FL", "paw"))
