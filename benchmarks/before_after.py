@@ -1,7 +1,7 @@
 """Two checkouts of the SDK side by side: the runtime's control step and a training update,
 measured in alternating fresh processes (interleaved rounds, medians).
 
-    python benchmarks/before_after.py OLD_PACKAGES NEW_PACKAGES --rounds 5 [--act-only]
+    python -m benchmarks.before_after OLD_PACKAGES NEW_PACKAGES --rounds 5 [--act-only]
 
 Each PACKAGES is a directory holding `mat_sdk`, `mat_runtime` and `mat_export` (symlinks to
 a checkout's `mat_sdk/`, `runtime/` and `export/` will do). Both act with the same bundle
@@ -32,7 +32,7 @@ for _ in range(3000):
     start = time.perf_counter(); policy.act(obs); times.append(time.perf_counter() - start)
 result = {"act_us": float(np.median(times)) * 1e6}
 if sys.argv[1] == "train":
-    from mat_sdk.trainer import Trainer
+    from mat_sdk.training.trainer import Trainer
     rows = []
     with Trainer("cheetah-6x1", "mat", num_envs=40, rollout_length=100) as trainer:
         trainer.learn(12_000, progress_bar=False, callback=lambda t, m: rows.append(m))

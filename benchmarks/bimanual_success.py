@@ -1,7 +1,7 @@
 """Success rates of bimanual reaching policies (examples/bimanual.py): each arm's hand within
 2 cm of its target when the episode ends, on the nominal arms and on randomized ones.
 
-    PYTHONPATH=examples python benchmarks/bimanual_success.py \\
+    PYTHONPATH=examples python -m benchmarks.bimanual_success \\
         --group plain='runs/bimanual/seed_*/checkpoint.pt' \\
         --group randomized='runs/bimanual-rand/seed_*/checkpoint.pt' --episodes 50
 """
@@ -14,8 +14,8 @@ import click
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.evaluation import CheckpointPolicy, one_torch_thread
-from mat_sdk.recipes import with_examples
+from mat_sdk.evaluation.episodes import CheckpointPolicy, one_torch_thread
+from tests.recipes import with_examples
 
 with_examples()
 import bimanual  # noqa: E402  (examples/, put on the path just above)

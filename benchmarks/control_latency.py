@@ -1,7 +1,7 @@
 """A control step's latency, side by side in one run: the bare policy, the controller kit
 around it, and a state/command round trip over DDS with a process on the other side.
 
-    python benchmarks/control_latency.py runs/t57/seed_1/onnx --ticks 2000
+    python -m benchmarks.control_latency runs/t57/seed_1/onnx --ticks 2000
 
 Rows (each p50 / p99 / max over `--ticks` ticks, interleaved round by round):
 - `Policy.act`: the bundle's one call on a Go2 observation;

@@ -1,7 +1,7 @@
 """Memory per env copy of a textured robot: physics copies compiled with their visual assets
 (textures, visual meshes) against lean ones (`compiler.discardvisual`, what the SDK builds).
 
-    python benchmarks/env_memory.py --copies 32 --texture-mb 240
+    python -m benchmarks.env_memory --copies 32 --texture-mb 240
 
 The model is the trimmed Go2 with textures added on a visual-only geom, as a Menagerie model
 with its textures carries them (the full Spot model: about 244 MB). Each variant runs in a
@@ -25,10 +25,10 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 MEASURE = """
 import json, sys
 sys.path.insert(0, {examples!r})
-from mat_sdk.envs import model_task
+from mat_sdk.envs.mujoco import model_task
 from mat_sdk import envs
 import quadrupeds
-from mat_sdk.envs.legged import WALK, LeggedRobot
+from mat_sdk.envs.tasks.legged import WALK, LeggedRobot
 
 def rss_mb():
     return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2**20

@@ -1,7 +1,7 @@
 """How a legged policy walks: each foot's share of control steps on the floor, from the
 robot's own contact signal, over one episode at a fixed command (the first second left out).
 
-    PYTHONPATH=examples python benchmarks/foot_contacts.py runs/spot/seed_*/checkpoint.pt \\
+    PYTHONPATH=examples python -m benchmarks.foot_contacts runs/spot/seed_*/checkpoint.pt \\
         --command 0.7 0 0 --steps 450
 
 A foot near 1.0 never lifts; near 0.0 it is held up (a three-legged gait); a walking trot
@@ -16,7 +16,7 @@ import click
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.evaluation import CheckpointPolicy
+from mat_sdk.evaluation.episodes import CheckpointPolicy
 
 
 def contact_shares(path: str, command: tuple[float, float, float], steps: int, seed: int):

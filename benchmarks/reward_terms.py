@@ -1,7 +1,7 @@
 """Each reward term's mean per step under random actions, per env: which term rules a task's
-reward on a robot before any training (`mat_sdk.envs.reward_check`).
+reward on a robot before any training (`mat_sdk.envs.tasks.reward_check`).
 
-    PYTHONPATH=examples python benchmarks/reward_terms.py quadrupeds:go2 quadrupeds:a1 \\
+    PYTHONPATH=examples python -m benchmarks.reward_terms quadrupeds:go2 quadrupeds:a1 \\
         quadrupeds:spot --steps 1000 --seeds 3
 
 Prints a Markdown table: a row per term, a column per env (mean over seeds of the mean per
@@ -14,7 +14,7 @@ import click
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.envs.reward_check import random_breakdown, ruling_penalty
+from mat_sdk.envs.tasks.reward_check import random_breakdown, ruling_penalty
 
 
 @click.command()

@@ -1,7 +1,7 @@
 """Robustness sweeps of groups of policies (e.g. trained with and without randomization, a few
 seeds each): per factor, a Markdown table of each group's seed means and a plot.
 
-    PYTHONPATH=examples python benchmarks/robustness.py \\
+    PYTHONPATH=examples python -m benchmarks.robustness \\
         --group plain='runs/go2-mat/seed_*/checkpoint.pt' \\
         --group randomized='runs/go2-mat-rand/seed_*/checkpoint.pt' \\
         --sweep friction=0.4:1.2:5 --sweep payload=0:2:5 --sweep latency=0,1,2 \\
@@ -20,10 +20,10 @@ from pathlib import Path
 import click
 import numpy as np
 
-from mat_sdk import robustness
 from mat_sdk.cli.common import parse_settings
-from mat_sdk.evaluation import CheckpointPolicy, Episodes
-from mat_sdk.files import write_text_atomic
+from mat_sdk.common.files import write_text_atomic
+from mat_sdk.evaluation import robustness
+from mat_sdk.evaluation.episodes import CheckpointPolicy, Episodes
 
 
 @click.command()

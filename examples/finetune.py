@@ -13,8 +13,8 @@ from pathlib import Path
 from mat_export import export
 from mat_runtime import Policy
 from mat_sdk.envs import make_team
-from mat_sdk.faults import Fault
-from mat_sdk.finetune import finetune
+from mat_sdk.envs.core.faults import Fault
+from mat_sdk.training.finetune import finetune
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ degrees or touches the floor. docs/REAL_ROBOTS.md walks through every choice.
 
 This is the Go2's own task, its penalties in the Go2's units (N m, m/s), as measured in
 docs/REAL_ROBOTS.md sections 6-8. For any legged robot, the Go2 included, use the
-robot-relative task in `quadrupeds.py` (`mat_sdk.envs.legged.WALK`).
+robot-relative task in `quadrupeds.py` (`mat_sdk.envs.tasks.legged.WALK`).
 
 `robots/unitree_go2/` is a trimmed copy of Menagerie's model (collision geometry only, its
 BSD-3-Clause license beside it); the full model with meshes works the same.

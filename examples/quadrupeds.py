@@ -16,7 +16,7 @@ folder says what was removed and under which licence); the full models work the 
 
 from pathlib import Path
 
-from mat_sdk.envs.legged import JOYSTICK, WALK, LeggedRobot
+from mat_sdk.envs.tasks.legged import JOYSTICK, WALK, LeggedRobot
 
 ROBOTS = Path(__file__).parent / "robots"
 LEGS = ("FL", "FR", "RL", "RR")  # front left, front right, rear left, rear right

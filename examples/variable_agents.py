@@ -1,6 +1,6 @@
 """One controller, a robot whose agent count changes between episodes, no reload.
 
-    python -m mat_sdk.bench.transfer --out runs/transfer      # or any family policy:
+    python -m benchmarks.transfer --out runs/transfer      # or any family policy:
     mat train mamujoco:ManySegmentSwimmer-3x2 mamujoco:ManySegmentSwimmer-4x2 \
         mamujoco:ManySegmentSwimmer-5x2 --steps 200000 --out runs/swimmer345
     mat export runs/swimmer345/checkpoint.pt -o runs/swimmer345/onnx

@@ -37,11 +37,13 @@ from mat_export.graphs import (
 from mat_export.manifest import NORMALIZER_PLACE, finish_graph, manifest, sha256
 from mat_export.parity import AGENT_COUNTS, measure_parity
 from mat_export.target import check_target, staging
-from mat_sdk import checkpoint, envs, files
-from mat_sdk.control_graph import OPSET as DECODE_OPSET
-from mat_sdk.control_graph import build_decode
-from mat_sdk.model import ModelConfig, check_fits
-from mat_sdk.normalization import RunningMeanStd, ValueNorm
+from mat_sdk import envs
+from mat_sdk.common import files
+from mat_sdk.policy import checkpoint
+from mat_sdk.policy.control_graph import OPSET as DECODE_OPSET
+from mat_sdk.policy.control_graph import build_decode
+from mat_sdk.policy.model import ModelConfig, check_fits
+from mat_sdk.policy.normalization import RunningMeanStd, ValueNorm
 
 OPSET = 20  # encoder.onnx and decoder_step.onnx; decode*.onnx: DECODE_OPSET (24, Attention)
 

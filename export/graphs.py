@@ -9,8 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from mat_sdk.model import MAT, UNAVAILABLE_LOGIT, PolicyNetwork
-from mat_sdk.normalization import RunningMeanStd
+from mat_sdk.policy.model import MAT, UNAVAILABLE_LOGIT, PolicyNetwork
+from mat_sdk.policy.normalization import RunningMeanStd
 
 
 def cache_names(n_block: int) -> list[tuple[str, str]]:

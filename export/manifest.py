@@ -10,9 +10,9 @@ import onnx
 
 from mat_export.errors import ExportError
 from mat_export.graphs import cache_names
-from mat_sdk import checkpoint
-from mat_sdk.faults import as_mapping
-from mat_sdk.model import ModelConfig
+from mat_sdk.envs.core.faults import as_mapping
+from mat_sdk.policy import checkpoint
+from mat_sdk.policy.model import ModelConfig
 
 FORMAT = "mat-onnx"
 VERSION = 1

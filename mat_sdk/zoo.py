@@ -1,7 +1,7 @@
 """Put a trained run into the model zoo (`zoo/NAME/`), with a card that says what it scores.
 
     mat zoo add runs/transfer/multi-end-flags/seed_2 swimmer-family-mat \
-        --command "python -m mat_sdk.bench.transfer --steps 200000 --out runs/transfer"
+        --command "python -m benchmarks.transfer --steps 200000 --out runs/transfer"
 
 Copies the checkpoint, exports its bundle, evaluates it as `mat eval zoo:NAME --episodes N`
 does (deterministic, the same starts) beside a random team, and writes `card.json` and
@@ -24,9 +24,15 @@ from scipy import stats
 
 from mat_export import export
 from mat_runtime.zoo import NAME, models, zoo_dir
-from mat_sdk import checkpoint, envs, files
-from mat_sdk.evaluation import CheckpointPolicy, evaluate
-from mat_sdk.recipes import EVALUATION_SEED, random_team_return
+from mat_sdk import envs
+from mat_sdk.common import files
+from mat_sdk.evaluation.episodes import (
+    EVALUATION_SEED,
+    CheckpointPolicy,
+    evaluate,
+    random_team_return,
+)
+from mat_sdk.policy import checkpoint
 
 
 def _commit() -> str:

@@ -16,8 +16,8 @@ def go2_bundle(tmp_path_factory):
     from helpers import TINY
 
     from mat_export import export
-    from mat_sdk.recipes import with_examples
-    from mat_sdk.trainer import Trainer
+    from mat_sdk.training.trainer import Trainer
+    from tests.recipes import with_examples
 
     with_examples()
     root = tmp_path_factory.mktemp("go2")

@@ -6,8 +6,8 @@ import sys
 import torch
 from torch import nn
 
-from mat_sdk.recipes import GAME  # noqa: F401  (the learning tests' recipe)
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
+from tests.recipes import GAME  # noqa: F401  (the learning tests' recipe)
 
 TINY = {"num_envs": 2, "rollout_length": 10, "ppo_epochs": 1, "num_minibatches": 1}
 

@@ -19,10 +19,12 @@ from gymnasium import spaces
 from helpers import TINY, make_checkpoint
 from pettingzoo import ParallelEnv
 
-from mat_sdk import checkpoint, envs, files
-from mat_sdk.envs.base import UserCodeError
-from mat_sdk.envs.sources import MAX_SUBSTEPS
-from mat_sdk.trainer import Trainer
+from mat_sdk import envs
+from mat_sdk.common import files
+from mat_sdk.envs.core.base import UserCodeError
+from mat_sdk.envs.mujoco.sources import MAX_SUBSTEPS
+from mat_sdk.policy import checkpoint
+from mat_sdk.training.trainer import Trainer
 
 ARM = """
 <mujoco>
@@ -319,7 +321,7 @@ NAN = {"step_1": {"step_count": 100, "return": ["NAN"]}}  # written as JSON's Na
     ],
 )
 def test_report_refuses_hostile_evaluations_naming_the_file(tmp_path, text, message):
-    from mat_sdk.report import write_report
+    from mat_sdk.evaluation.report import write_report
 
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "evaluations.json").write_text(text)
@@ -330,7 +332,7 @@ def test_report_refuses_hostile_evaluations_naming_the_file(tmp_path, text, mess
 
 
 def test_report_does_not_follow_a_symlink_out_of_the_run(tmp_path):
-    from mat_sdk.report import write_report
+    from mat_sdk.evaluation.report import write_report
 
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "evaluations.json").symlink_to("/etc/passwd")
@@ -403,7 +405,7 @@ def test_a_second_run_in_the_same_directory_is_refused_naming_the_first(tmp_path
     """The lock is the OS's: a second process is refused; the lock dies with its holder."""
     holder = subprocess.Popen(
         [sys.executable, "-c",
-         "import sys, time\nfrom mat_sdk import files\n"
+         "import sys, time\nfrom mat_sdk.common import files\n"
          f"with files.RunLock({str(tmp_path)!r}):\n    print('held', flush=True)\n"
          "    time.sleep(60)\n"],
         stdout=subprocess.PIPE, text=True,
@@ -459,7 +461,7 @@ def test_a_disk_that_fills_under_tensorboard_is_one_line_and_no_thread_traceback
 def test_faults_are_values_parsed_once_and_their_mapping_form_loads_the_same():
     """`--fault` strings, the mapping form checkpoints store and `Fault` values are one thing;
     the env acts on the typed list."""
-    from mat_sdk.faults import Fault, as_mapping, faults_of
+    from mat_sdk.envs.core.faults import Fault, as_mapping, faults_of
 
     typed = (Fault.zero("bfoot"), Fault.weak("fthigh", 0.5), Fault.remove("agent_2"))
     parsed = tuple(

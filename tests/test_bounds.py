@@ -14,8 +14,8 @@ import pytest
 
 from mat_sdk import envs
 from mat_sdk.envs import terms
-from mat_sdk.envs.randomization import Randomization
-from mat_sdk.recipes import with_examples
+from mat_sdk.envs.mujoco.randomization import Randomization
+from tests.recipes import with_examples
 
 with_examples()
 import go2  # noqa: E402  (examples/, put on the path just above)

@@ -9,10 +9,10 @@ import torch
 from helpers import make_checkpoint
 
 from mat_export import export
-from mat_sdk import checkpoint
-from mat_sdk.checkpoint import CheckpointError
-from mat_sdk.evaluation import CheckpointPolicy
-from mat_sdk.trainer import Trainer
+from mat_sdk.evaluation.episodes import CheckpointPolicy
+from mat_sdk.policy import checkpoint
+from mat_sdk.policy.checkpoint import CheckpointError
+from mat_sdk.training.trainer import Trainer
 
 
 @pytest.fixture(scope="module")

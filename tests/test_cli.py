@@ -9,8 +9,8 @@ import click
 import numpy as np
 from click.testing import CliRunner
 
-from mat_sdk import checkpoint
 from mat_sdk.cli import main
+from mat_sdk.policy import checkpoint
 
 
 def test_envs_table_lists_every_robot():
@@ -197,7 +197,7 @@ def test_every_documented_command_and_option_exists():
 
 
 def test_ctrl_c_says_what_the_checkpoint_holds_and_how_to_resume(tmp_path, monkeypatch):
-    from mat_sdk.trainer import Trainer
+    from mat_sdk.training.trainer import Trainer
 
     learn = Trainer.learn
 
@@ -285,7 +285,7 @@ def test_device_auto_trains_on_the_cpu_here(tmp_path):
     assert result.exit_code == 0, result.output
     import torch
 
-    from mat_sdk import checkpoint
+    from mat_sdk.policy import checkpoint
 
     expected = "cuda" if torch.cuda.is_available() else "cpu"
     assert checkpoint.load(out / "checkpoint.pt")["rng"]["device"] == expected
@@ -330,7 +330,7 @@ def test_trainer_and_mat_train_build_the_same_run_for_a_family(tmp_path):
     """The library decides the family identity where Trainer builds its env, so the Python API
     and the command line train the same policy from the same id, and record the same config
     in their checkpoints."""
-    from mat_sdk.trainer import Trainer
+    from mat_sdk.training.trainer import Trainer
 
     result = CliRunner().invoke(
         main, ["train", "swimmer-4", "--steps", "40", "--out", str(tmp_path), *TINY_TRAIN]

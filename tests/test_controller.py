@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from mat_sdk.recipes import with_examples
+from tests.recipes import with_examples
 
 with_examples()
 import go2  # noqa: E402  (examples/, put on the path just above)

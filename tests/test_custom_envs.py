@@ -19,9 +19,10 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.test import parallel_api_test
 
-from mat_sdk import envs, recipes
-from mat_sdk.ppo import LossCoefficients, minibatch_loss, ppo_loss
-from mat_sdk.trainer import Trainer
+from mat_sdk import envs
+from mat_sdk.training.ppo import LossCoefficients, minibatch_loss, ppo_loss
+from mat_sdk.training.trainer import Trainer
+from tests import recipes
 
 recipes.with_examples()
 import my_robots  # noqa: E402  (examples/, put on the path just above)
@@ -342,10 +343,10 @@ def test_the_custom_arm_is_decomposed_like_a_built_in_robot():
 
 
 def test_a_dm_control_suite_task_with_a_layout_of_its_own():
-    from mat_sdk.envs.robots import SuiteTask
+    from mat_sdk.envs.mujoco.robots import SuiteTask
 
     with pytest.warns(
-        envs.sources.UnusedActuators,
+        envs.UnusedActuators,
         match=r"leaves actuators \['bshin', 'bfoot', 'fshin', 'ffoot'\]",
     ):
         spec = envs.from_dm_control(

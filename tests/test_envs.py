@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from mat_sdk import envs, processes
-from mat_sdk.envs.robots import spec_for
-from mat_sdk.envs.vector import TeamFactory, VecTeam
-from mat_sdk.recipes import with_examples
+from mat_sdk import envs
+from mat_sdk.common import processes
+from mat_sdk.envs.core.vector import TeamFactory, VecTeam
+from mat_sdk.envs.mujoco.robots import spec_for
+from tests.recipes import with_examples
 
 ROBOT_IDS = [
     "cheetah-6x1",
@@ -597,7 +598,7 @@ def test_unknown_scenarios_and_options_are_named():
 
 
 def test_a_diverged_simulation_ends_the_episode_with_a_warning():
-    from mat_sdk.envs.base import PhysicsDiverged
+    from mat_sdk.envs.core.base import PhysicsDiverged
 
     robot = envs.make_team("cheetah-2x3")
     robot.reset(seed=0)

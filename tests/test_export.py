@@ -13,8 +13,8 @@ from helpers import make_checkpoint
 
 from mat_export import ExportError, export, exporter
 from mat_export import parity as parity_module
-from mat_sdk import checkpoint
 from mat_sdk.cli import main
+from mat_sdk.policy import checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -227,8 +227,8 @@ def test_folded_normaliser_gives_values_in_return_units(mat_checkpoint, mat_bund
     )
     session = ort.InferenceSession(str(mat_bundle[0] / "encoder.onnx"))
     _, values = session.run(None, {"obs": obs})
-    from mat_sdk.evaluation import CheckpointPolicy
-    from mat_sdk.normalization import ValueNorm
+    from mat_sdk.evaluation.episodes import CheckpointPolicy
+    from mat_sdk.policy.normalization import ValueNorm
 
     loaded = CheckpointPolicy.from_checkpoint(mat_checkpoint)
     value_norm = ValueNorm()
@@ -245,7 +245,7 @@ def test_decode_graph_runs_the_whole_control_step_and_samples_from_given_noise(
 ):
     import onnxruntime as ort
 
-    from mat_sdk.evaluation import CheckpointPolicy
+    from mat_sdk.evaluation.episodes import CheckpointPolicy
 
     session = ort.InferenceSession(str(mat_bundle[0] / "decode.onnx"))
     assert [i.name for i in session.get_inputs()] == ["obs", "noise"]

@@ -3,10 +3,11 @@
 import csv
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from mat_sdk.bench import fewshot
+from benchmarks import fewshot
 
 pytest.importorskip("rliable")
 
@@ -51,9 +52,9 @@ def test_several_seeds_give_the_mean_over_seeds_with_its_interval(tmp_path):
 
 def test_report_without_results_says_to_run_the_experiment_first(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "mat_sdk.bench.fewshot", "zoo:halfcheetah-6x1-mat",
+        [sys.executable, "-m", "benchmarks.fewshot", "zoo:halfcheetah-6x1-mat",
          "--out", str(tmp_path), "--report"],
-        capture_output=True, text=True,
+        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1],
     )  # fmt: skip
     assert out.returncode == 2
     assert "no results in" in out.stderr and "run without --report" in out.stderr

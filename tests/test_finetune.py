@@ -8,9 +8,9 @@ import torch
 from click.testing import CliRunner
 from helpers import GAME, make_checkpoint
 
-from mat_sdk import recipes
 from mat_sdk.cli import main
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
+from tests import recipes
 
 CHANGE = recipes.FINETUNE_CHANGE  # 3 agents -> 2; agent_2 now follows agent_0 directly
 
@@ -21,7 +21,7 @@ def pretrained(tmp_path_factory):
 
 
 def test_finetuning_adapts_faster_than_training_from_scratch(pretrained, tmp_path):
-    """One seed is safe: `mat bench seeds --recipe finetune --recipe finetune-gain`."""
+    """One seed is safe: `python -m benchmarks.seeds --recipe finetune --recipe finetune-gain`."""
     finetuned, scratch, final = recipes.finetune_against_scratch(pretrained, tmp_path / "ft")
     assert len(finetuned) == len(scratch) == recipes.FINETUNE_UPDATES
     assert np.mean(finetuned[-5:]) >= 0.95 and final >= 0.95, (finetuned, final)

@@ -5,7 +5,7 @@ import copy
 import torch
 from torch import nn
 
-from mat_sdk.flat_params import FlatParameters
+from mat_sdk.training.flat_params import FlatParameters
 
 
 def test_flat_clip_and_adam_match_torch_per_parameter_and_save_its_layout():

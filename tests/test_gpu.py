@@ -5,8 +5,8 @@ import pytest
 import torch
 from helpers import GAME
 
-from mat_sdk.model import MAT, ModelConfig
-from mat_sdk.trainer import Trainer
+from mat_sdk.policy.model import MAT, ModelConfig
+from mat_sdk.training.trainer import Trainer
 
 pytestmark = [
     pytest.mark.gpu,

@@ -5,8 +5,8 @@ import pytest
 import torch
 from helpers import TINY
 
-from mat_sdk.ppo import Rows
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.ppo import Rows
+from mat_sdk.training.trainer import Trainer
 
 SPLIT = {**TINY, "ppo_epochs": 2, "num_minibatches": 2, "shuffle_agents": True}
 

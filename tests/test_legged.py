@@ -1,4 +1,4 @@
-"""One task definition for any legged robot (`mat_sdk.envs.legged`): robot-relative terms,
+"""One task definition for any legged robot (`mat_sdk.envs.tasks.legged`): robot-relative terms,
 named per-term logs, start poses from joint angles, the task's training recipe and lean
 physics copies, on the trimmed Menagerie Go2, A1 and Spot in examples/robots/."""
 
@@ -15,10 +15,10 @@ from helpers import TINY
 
 from mat_sdk import envs
 from mat_sdk.envs import terms
-from mat_sdk.envs.legged import JOYSTICK, WALK
-from mat_sdk.recipes import with_examples
-from mat_sdk.runs import RunRequest, with_task_recipe
-from mat_sdk.trainer import Trainer
+from mat_sdk.envs.tasks.legged import JOYSTICK, WALK
+from mat_sdk.training.runs import RunRequest, with_task_recipe
+from mat_sdk.training.trainer import Trainer
+from tests.recipes import with_examples
 
 with_examples()
 import quadrupeds  # noqa: E402  (examples/, put on the path just above)
@@ -119,7 +119,7 @@ def test_robot_relative_penalties_do_not_change_when_masses_and_forces_scale_tog
 
 
 def terms_trunk(model):
-    from mat_sdk.envs.trunk import Trunk
+    from mat_sdk.envs.mujoco.trunk import Trunk
 
     return Trunk(model)
 
@@ -187,7 +187,7 @@ def test_physics_copies_carry_no_visual_assets():
 def test_a_penalty_in_another_robots_units_is_warned_about_before_training():
     """The Go2's absolute torque weight on a robot where it costs far more than any positive
     term earns: the trainer warns, naming the term; the robot-relative task does not."""
-    from mat_sdk.envs.reward_check import RewardWarning
+    from mat_sdk.envs.tasks.reward_check import RewardWarning
 
     heavy = [terms.Alive(0.25), terms.Torque(1e-2, relative=False)]
     spec = envs.from_mjcf(
@@ -203,7 +203,7 @@ def test_a_penalty_in_another_robots_units_is_warned_about_before_training():
 
 
 def test_mat_eval_breaks_the_reward_down_by_term(tmp_path):
-    from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
+    from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate_episodes
 
     with Trainer("quadrupeds:a1", **TINY) as trainer:
         path = trainer.save(tmp_path / "a1.pt")
@@ -263,7 +263,7 @@ def test_a_video_is_rendered_at_its_frame_rate_from_a_copy_with_the_visual_asset
     import imageio.v2 as imageio
     from test_envs import gl_context_problem
 
-    from mat_sdk.evaluation import evaluate_episodes
+    from mat_sdk.evaluation.episodes import evaluate_episodes
 
     problem = gl_context_problem()
     if problem:  # only a missing GL context skips; any other render failure fails
@@ -301,7 +301,7 @@ def test_mat_eval_grid_reports_tracking_per_command_and_plots_it(tmp_path):
     from click.testing import CliRunner
 
     from mat_sdk.cli import main
-    from mat_sdk.tracking import JOYSTICK_GRID
+    from mat_sdk.evaluation.tracking import JOYSTICK_GRID
 
     with Trainer("quadrupeds:go2", **TINY) as trainer:
         path = trainer.save(tmp_path / "go2.pt")

@@ -4,7 +4,7 @@ import pytest
 import torch
 from helpers import trained_like
 
-from mat_sdk.model import MAT, ModelConfig, build_policy
+from mat_sdk.policy.model import MAT, ModelConfig, build_policy
 
 
 @pytest.mark.parametrize("window", [None, 3])
@@ -87,8 +87,8 @@ def test_official_std_parametrisation_and_bad_config():
 
 def test_every_algorithm_has_a_policy_and_the_registry_matches_the_runtimes_names():
     from mat_runtime.manifest import ALGOS, FIXED_TEAM
-    from mat_sdk.algorithms import ALGORITHMS, algorithm
-    from mat_sdk.model import POLICIES, build_policy
+    from mat_sdk.policy.algorithms import ALGORITHMS, algorithm
+    from mat_sdk.policy.model import POLICIES, build_policy
 
     assert tuple(ALGORITHMS) == ALGOS and set(POLICIES) == set(ALGOS)
     for name in ALGOS:

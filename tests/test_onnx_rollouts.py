@@ -4,9 +4,9 @@ import pytest
 import torch
 from helpers import trained_like
 
-from mat_sdk import recipes
-from mat_sdk.onnx_actor import OnnxActor
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.onnx_actor import OnnxActor
+from mat_sdk.training.trainer import Trainer
+from tests import recipes
 
 
 @pytest.mark.parametrize("env_id", ["hopper-2x2", "coordination-3"])
@@ -29,6 +29,6 @@ def test_onnx_actor_log_probs_and_values_match_torch(env_id):
 
 @pytest.mark.slow
 def test_onnx_rollouts_learn_the_coordination_game():
-    """One seed is safe: `mat bench seeds --recipe game-onnx`."""
+    """One seed is safe: `python -m benchmarks.seeds --recipe game-onnx`."""
     learned = recipes.onnx_game_return()
     assert learned >= 0.9, learned  # random play: 0.07

@@ -8,9 +8,14 @@ import pytest
 import torch
 from helpers import mat
 
-from mat_sdk import checkpoint
-from mat_sdk.multiseed import DONE_NAME, parse_seeds
-from mat_sdk.protocol import ABSOLUTE_FACTOR, env_and_task, interval_estimates, read_evaluations
+from mat_sdk.evaluation.protocol import (
+    ABSOLUTE_FACTOR,
+    env_and_task,
+    interval_estimates,
+    read_evaluations,
+)
+from mat_sdk.policy import checkpoint
+from mat_sdk.training.multiseed import DONE_NAME, parse_seeds
 
 # a run of a few seconds on the coordination game, evaluated every update
 TINY = [

@@ -16,8 +16,8 @@ from pettingzoo.test import parallel_api_test
 from mat_sdk import envs
 from mat_sdk.cli import main
 from mat_sdk.envs import Randomization
-from mat_sdk.recipes import with_examples
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
+from tests.recipes import with_examples
 
 with_examples()
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 from helpers import GAME, mat
 
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
 
 TESTS = Path(__file__).parent
 
@@ -19,7 +19,7 @@ TESTS = Path(__file__).parent
 def test_training_without_ray_never_imports_it():
     script = """
 import sys
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
 with Trainer("coordination-3", "mat", num_envs=2, rollout_length=2, num_minibatches=1) as t:
     t.learn(4, progress_bar=False)
 assert "ray" not in sys.modules
@@ -84,7 +84,7 @@ def test_a_seed_set_on_ray_retries_killed_seeds_from_their_checkpoints(tmp_path,
     Ray retries both tasks, they resume from their checkpoints, and seed 1 ends equal to a
     solo run of seed 1."""
     pytest.importorskip("ray")
-    from mat_sdk import checkpoint
+    from mat_sdk.policy import checkpoint
 
     plan = _kill_plan(tmp_path, monkeypatch, seed_0="self", seed_1="parent")
     args = ["killed_arm:arm", "--steps", "500", "--num-envs", "4", "--eval-every", "0",

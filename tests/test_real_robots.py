@@ -16,8 +16,8 @@ from helpers import TINY
 
 from mat_sdk import envs
 from mat_sdk.envs import terms
-from mat_sdk.recipes import with_examples
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
+from tests.recipes import with_examples
 
 with_examples()
 import go2  # noqa: E402  (examples/, put on the path just above)
@@ -231,7 +231,7 @@ def test_a_model_without_a_camera_is_filmed_by_a_following_camera():
 
 
 def test_actuators_left_to_no_agent_are_named():
-    with pytest.warns(envs.sources.UnusedActuators, match=r"leaves actuators \['RR_hip'"):
+    with pytest.warns(envs.UnusedActuators, match=r"leaves actuators \['RR_hip'"):
         layout = {**go2.LAYOUT, "RR": ["RR_thigh", "RR_calf"]}
         envs.from_mjcf(
             go2.MODELS / "scene_mjx.xml", layout, go2.REWARD, commands=go2.WALK, substeps=10

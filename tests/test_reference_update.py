@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
-from mat_sdk.normalization import ValueNorm
-from mat_sdk.ppo import Rows
-from mat_sdk.trainer import Trainer
+from mat_sdk.policy.normalization import ValueNorm
+from mat_sdk.training.ppo import Rows
+from mat_sdk.training.trainer import Trainer
 
 
 @pytest.mark.parametrize("update_workers", [0, 1], ids=["one-process", "split-with-a-worker"])

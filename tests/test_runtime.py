@@ -18,8 +18,8 @@ import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
 from mat_sdk.envs import make_team
-from mat_sdk.evaluation import CheckpointPolicy
-from mat_sdk.recipes import with_examples
+from mat_sdk.evaluation.episodes import CheckpointPolicy
+from tests.recipes import with_examples
 
 COUNTS = (1, 2, 3, 6, 17, 64)  # 2 and 3: the trained counts, served by decode_nN.onnx
 
@@ -386,7 +386,7 @@ def test_loading_while_an_export_replaces_the_bundle_never_fails(bundles, tmp_pa
     a load sees the old bundle or the new one, whole."""
     import shutil
 
-    from mat_sdk import files
+    from mat_sdk.common import files
 
     target = tmp_path / "bundle"
     shutil.copytree(bundles["mat"][1], target)

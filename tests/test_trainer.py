@@ -15,16 +15,18 @@ import pytest
 import torch
 from helpers import GAME
 
-from mat_sdk import checkpoint, envs, recipes
-from mat_sdk.rollout import Trajectory
-from mat_sdk.trainer import TrainConfig, Trainer, TrainingDiverged
+from mat_sdk import envs
+from mat_sdk.policy import checkpoint
+from mat_sdk.training.rollout import Trajectory
+from mat_sdk.training.trainer import TrainConfig, Trainer, TrainingDiverged
+from tests import recipes
 
 DATA = Path(__file__).parent / "data"
 
 
 def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
-    """One seed is safe: `mat bench seeds --recipe game-mat --recipe game-mat-dec` shows the
-    bounds hold on every seed swept (BENCHMARKS.md)."""
+    """One seed is safe: `python -m benchmarks.seeds --recipe game-mat --recipe game-mat-dec`
+    shows the bounds hold on every seed swept (BENCHMARKS.md)."""
     mat, dec = recipes.game_return("mat"), recipes.game_return("mat-dec")
     assert mat >= 0.9, mat  # random play scores 2/27 = 0.07
     assert dec <= 0.5, dec  # decentralised actors can reach at most 1/3
@@ -32,7 +34,8 @@ def test_mat_solves_the_coordination_game_and_decentralised_actors_cannot():
 
 
 def test_happo_reaches_the_decentralised_best_on_the_coordination_game_and_no_more():
-    """`mat bench seeds --recipe game-happo`: every seed swept ends near 1/3 (BENCHMARKS.md)."""
+    """`python -m benchmarks.seeds --recipe game-happo`: every seed swept ends near 1/3
+    (BENCHMARKS.md)."""
     happo = recipes.game_return("happo")
     assert happo >= 0.25, happo  # random play: 2/27 = 0.07; decentralised best: 1/3
     assert happo <= 0.5, happo  # an actor per agent still cannot see the others' choices
@@ -45,7 +48,7 @@ def test_short_continuous_run_beats_a_random_team():
 
 
 def test_short_continuous_happo_run_beats_a_random_team():
-    """`mat bench seeds --recipe continuous-happo`: 2.7-4.2 on seeds 0-3 against 2."""
+    """`python -m benchmarks.seeds --recipe continuous-happo`: 2.7-4.2 on seeds 0-3 against 2."""
     bound = recipes.continuous_bound()
     learned = recipes.continuous_return(algo="happo")
     assert learned >= bound, (learned, bound)
@@ -67,7 +70,7 @@ TIMING = ("rollout_s", "update_s", "steps_per_s")
 
 def logged_rows(run_dir) -> list[dict]:
     """metrics.csv without its timing columns, which no two runs share."""
-    from mat_sdk.run_log import read_metrics
+    from mat_sdk.training.run_log import read_metrics
 
     rows = read_metrics(run_dir / "metrics.csv")
     return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
@@ -216,7 +219,7 @@ KILL_OPTIONS = {
 }
 KILL_SCRIPT = f"""
 import pathlib, sys
-from mat_sdk.trainer import Trainer
+from mat_sdk.training.trainer import Trainer
 out = pathlib.Path(sys.argv[1])
 if (out / "checkpoint.pt").exists():
     trainer = Trainer.load(out / "checkpoint.pt", out_dir=out)
@@ -426,8 +429,8 @@ def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratio
     if an agent's step moves another's weights, or if the order is not the drawn one."""
     import copy
 
-    from mat_sdk import happo
-    from mat_sdk.ppo import value_loss
+    from mat_sdk.training import happo
+    from mat_sdk.training.ppo import value_loss
 
     options = {**TINY, "ppo_epochs": 1, "num_minibatches": 1, "lr": 3e-2, "critic_lr": 1e-2}
     with Trainer("hopper-4x1", "happo", **options) as trainer:

@@ -5,7 +5,7 @@ import csv
 
 import pytest
 
-from mat_sdk.bench import transfer
+from benchmarks import transfer
 
 
 def _args(**changes):

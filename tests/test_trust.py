@@ -19,10 +19,11 @@ import pytest
 import torch
 
 from mat_runtime import Policy
-from mat_sdk import checkpoint, envs
+from mat_sdk import envs
 from mat_sdk.envs import UntrustedEnvError
-from mat_sdk.evaluation import CheckpointPolicy, evaluate
-from mat_sdk.trainer import Trainer
+from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate
+from mat_sdk.policy import checkpoint
+from mat_sdk.training.trainer import Trainer
 
 REPO = Path(__file__).resolve().parents[1]
 PLANTED = """
@@ -32,7 +33,7 @@ Path(__file__).with_name("ran").write_text("imported")
 
 
 def make():
-    from mat_sdk.envs.robots import spec_for
+    from mat_sdk.envs.mujoco.robots import spec_for
 
     return spec_for("hopper-2x2")
 """
@@ -126,7 +127,7 @@ def test_the_python_api_refuses_recorded_ids_without_the_opt_in(planted, monkeyp
     ):
         with pytest.raises(UntrustedEnvError, match="records the env id 'planted:make'"):
             call()
-    from mat_sdk.finetune import finetune
+    from mat_sdk.training.finetune import finetune
 
     with pytest.raises(UntrustedEnvError, match="trust_env_code=True"):
         finetune(hostile, steps=20, out_dir=planted / "ft-api")
@@ -215,7 +216,7 @@ def test_a_tampered_best_checkpoint_is_not_evaluated_as_its_own_env(planted, mon
     """The end-of-run absolute metric evaluates `best.pt` on the run's own env: a `best.pt`
     that records another module's id (with an evaluation log claiming a huge return) is
     refused, and the module is never imported."""
-    from mat_sdk.protocol import BEST_NAME, EvaluationLog
+    from mat_sdk.evaluation.protocol import BEST_NAME, EvaluationLog
 
     monkeypatch.chdir(planted)
     monkeypatch.syspath_prepend(str(planted))
@@ -234,7 +235,7 @@ def test_a_tampered_best_checkpoint_is_not_evaluated_as_its_own_env(planted, mon
 def test_a_resumed_finetune_does_not_trust_the_envs_its_checkpoint_adds(planted, monkeypatch):
     """`finetune(..., env=E, resume=True)` names E, and only E: a `more_envs` entry planted in
     the run's checkpoint is still refused."""
-    from mat_sdk.finetune import finetune
+    from mat_sdk.training.finetune import finetune
 
     monkeypatch.chdir(planted)
     monkeypatch.syspath_prepend(str(planted))

@@ -6,9 +6,9 @@ import pytest
 import torch
 from helpers import mat
 
-from mat_sdk import checkpoint
-from mat_sdk.processes import usable_cores
-from mat_sdk.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
+from mat_sdk.common.processes import usable_cores
+from mat_sdk.policy import checkpoint
+from mat_sdk.training.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, wanted
 
 # a run of seconds; compile stays off (given), so only update workers and flushing are measured
 TINY = [

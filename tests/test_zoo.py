@@ -9,8 +9,8 @@ import pytest
 
 from mat_runtime import BundleError, Policy
 from mat_runtime.zoo import models, zoo_dir
-from mat_sdk import checkpoint
-from mat_sdk.evaluation import CheckpointPolicy, evaluate
+from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate
+from mat_sdk.policy import checkpoint
 
 MODELS = models()
 
@@ -38,7 +38,7 @@ def test_the_zoo_has_models_and_mat_zoo_lists_them():
 def test_a_zoo_model_reproduces_its_card_far_above_a_random_team(name):
     """As `mat eval zoo:NAME --episodes N`: the same starts and batch, so the same returns up
     to the float differences between CPUs (which a long episode can amplify)."""
-    from mat_sdk.recipes import with_examples
+    from tests.recipes import with_examples
 
     with_examples()  # an example's robot (go2-walk-mat: quadrupeds:go2)
     card = _card(name)

@@ -24,8 +24,8 @@ import numpy as np
 from mat_runtime import Policy, loop
 from mat_sdk.bench import machine
 from mat_sdk.bench.runtime import untrained_bundle
+from mat_sdk.common.timing import compare, print_table
 from mat_sdk.envs import make_team
-from mat_sdk.timing import compare, print_table
 
 ROBOTS = (("cheetah-6x1", 1000.0), ("swimmer-65", 100.0))  # (env, rate): n = 6, n = 64
 

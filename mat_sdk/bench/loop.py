@@ -20,9 +20,9 @@ from collections.abc import Callable
 import numpy as np
 
 from mat_sdk import envs
-from mat_sdk.processes import usable_cores
-from mat_sdk.timing import compare, print_table
-from mat_sdk.trainer import Trainer
+from mat_sdk.common.processes import usable_cores
+from mat_sdk.common.timing import compare, print_table
+from mat_sdk.training.trainer import Trainer
 
 LEVERS = (
     ("before: envs in this process, torch acting, eager update", {}),

@@ -1,7 +1,7 @@
 """A MAT run the way the official code runs it: the baseline of `mat bench train` (an update
 step) and `mat bench runtime` (a control step).
 
-Same parameters (and names) as `mat_sdk.model.MAT`, so one state dict drives both, and the
+Same parameters (and names) as `mat_sdk.policy.model.MAT`, so one state dict drives both, and the
 same math, so tests hold their losses, gradients and actions equal. What differs is how it
 runs, as in the official `ma_transformer.py` / `transformer_act.py` / `mat_trainer.py`:
 attention as explicit matmul + masked softmax against a fixed `tril` buffer, validated
@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mat_sdk.model import MAT
-from mat_sdk.ppo import Rows
+from mat_sdk.policy.model import MAT
+from mat_sdk.training.ppo import Rows
 
 
 class OfficialAttention(nn.Module):

@@ -27,8 +27,8 @@ from mat_export.exporter import export
 from mat_runtime import Policy
 from mat_sdk.bench import machine
 from mat_sdk.bench.reference import OfficialStyleMAT
-from mat_sdk.timing import print_table
-from mat_sdk.trainer import Trainer
+from mat_sdk.common.timing import print_table
+from mat_sdk.training.trainer import Trainer
 
 SIZES = {
     "1 block, 1 head": {"n_block": 1, "n_head": 1},

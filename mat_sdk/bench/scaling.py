@@ -14,8 +14,8 @@ import time
 import numpy as np
 
 from mat_sdk.bench import machine
-from mat_sdk.timing import print_table
-from mat_sdk.trainer import Trainer
+from mat_sdk.common.timing import print_table
+from mat_sdk.training.trainer import Trainer
 
 
 def variants(workers: tuple[int, ...]) -> dict[str, dict]:

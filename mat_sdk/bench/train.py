@@ -16,15 +16,15 @@ from functools import partial
 
 import torch
 
-from mat_sdk import ppo
 from mat_sdk.bench.reference import OfficialStyleMAT, official_loss
-from mat_sdk.config import RECIPES, TrainConfig
-from mat_sdk.normalization import ValueNorm
-from mat_sdk.ppo import Rows
-from mat_sdk.processes import usable_cores
-from mat_sdk.timing import compare, print_table
-from mat_sdk.trainer import Trainer
-from mat_sdk.tuning import twin
+from mat_sdk.common.processes import usable_cores
+from mat_sdk.common.timing import compare, print_table
+from mat_sdk.policy.config import RECIPES, TrainConfig
+from mat_sdk.policy.normalization import ValueNorm
+from mat_sdk.training import ppo
+from mat_sdk.training.ppo import Rows
+from mat_sdk.training.trainer import Trainer
+from mat_sdk.training.tuning import twin
 
 
 def _reference_step(trainer: Trainer, batch: Rows):

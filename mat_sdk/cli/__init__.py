@@ -26,7 +26,6 @@ def main() -> None:
       mat export runs/cheetah/checkpoint.pt -o cheetah_onnx   then: mat_runtime.Policy
       mat finetune runs/cheetah/checkpoint.pt --fault bthigh=zero --steps 20000
       mat bench envs                    env stepping speed (also: runtime, jitter, train, scaling)
-      mat bench seeds                   the learning tests' recipes on many seeds
       mat zoo                           trained models that ship with the project (zoo:NAME)
 
     \b

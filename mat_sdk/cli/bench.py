@@ -15,12 +15,21 @@ def bench() -> None:
 
 @bench.command("envs")
 @click.option("--seconds", default=1.0, show_default=True, help="Time per measured variant.")
+@click.option(
+    "--randomized",
+    "robots",
+    multiple=True,
+    metavar="ENV",
+    help="A robot for the randomization table (repeatable) [cheetah-6x1, quadruped-4x3, "
+    "mamujoco:Ant-4x2]; e.g. PYTHONPATH=examples ... --randomized go2:walk.",
+)
 @user_errors
-def bench_envs(seconds: float) -> None:
-    """Our env step vs dm_control's bare physics step, and vectorised rates."""
+def bench_envs(seconds: float, robots: tuple[str, ...]) -> None:
+    """Our env step vs dm_control's bare physics step, randomization's cost, vectorised rates."""
+    from mat_sdk.bench.envs import RANDOMIZED
     from mat_sdk.bench.envs import main as run
 
-    run(seconds=seconds)
+    run(seconds=seconds, robots=robots or RANDOMIZED)
 
 
 @bench.command("runtime")
@@ -147,38 +156,3 @@ def bench_train(
     from mat_sdk.bench.train import main as run
 
     run(env_id, device=device, compiled=compiled, rounds=rounds, workers=workers, threads=threads)
-
-
-@bench.command("seeds")
-@click.option(
-    "--recipe",
-    "recipes",
-    multiple=True,
-    help="A learning test's recipe (repeatable) [all]: game-mat, game-mat-dec, game-onnx, "
-    "finetune, finetune-gain, continuous, arm, spread, spread-continuous.",
-)
-@click.option("--seeds", default=16, show_default=True, help="Seeds 0..N-1 (or --first).")
-@click.option("--first", default=0, show_default=True, help="The first seed.")
-@click.option("--processes", type=int, help="Runs at a time [one per core].")
-@user_errors
-def bench_seeds(recipes: tuple[str, ...], seeds: int, first: int, processes: int | None) -> None:
-    """The learning tests' recipes on many seeds: does each test's bound hold on every seed?
-
-    \b
-    Each recipe trains exactly what its test trains (seconds per run on one core).
-    Examples:
-      mat bench seeds --recipe game-mat --seeds 16
-      mat bench seeds --seeds 4 --first 100      every recipe on seeds 100-103
-    """
-    from mat_sdk.bench.seeds import main as run
-    from mat_sdk.recipes import RECIPES
-
-    unknown = set(recipes) - set(RECIPES)
-    if unknown:
-        raise click.BadParameter(
-            f"unknown recipe(s) {sorted(unknown)}; valid: {', '.join(RECIPES)}",
-            param_hint="--recipe",
-        )
-    if seeds < 1 or first < 0:
-        raise click.BadParameter("--seeds must be >= 1 and --first >= 0")
-    run(recipes or tuple(RECIPES), range(first, first + seeds), processes)

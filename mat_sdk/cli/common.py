@@ -82,7 +82,7 @@ def resumable(checkpoint: Path, resume: str) -> Iterator[None]:
     try:
         yield
     except KeyboardInterrupt:
-        from mat_sdk import checkpoint as checkpoints
+        from mat_sdk.policy import checkpoint as checkpoints
 
         if checkpoint.is_file():
             steps = checkpoints.load(checkpoint)["progress"]["steps"]
@@ -96,7 +96,7 @@ def resumable(checkpoint: Path, resume: str) -> Iterator[None]:
 def parse_faults(values: tuple[str, ...]) -> tuple:
     """`("bfoot=zero", "agent_2=remove", "FR_calf_joint=weak:0.5")` -> `Fault`s, each
     checked (`Fault.parse`); the env checks the names."""
-    from mat_sdk.faults import Fault, faults_of
+    from mat_sdk.envs.core.faults import Fault, faults_of
 
     try:
         return faults_of(Fault.parse(value) for value in values)

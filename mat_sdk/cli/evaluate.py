@@ -60,7 +60,7 @@ def evaluate(
       mat eval runs/go2/checkpoint.pt --sweep friction=0.4:1.2:5 --plot friction.png
       mat eval runs/go2/checkpoint.pt --grid --episodes 5 --plot tracking.png --trust-env-code
     """
-    from mat_sdk.evaluation import CheckpointPolicy, evaluate_episodes
+    from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate_episodes
 
     loaded = CheckpointPolicy.from_checkpoint(checkpoint, trust_env_code=trust_env_code)
     if plot and not (sweep or grid):
@@ -93,7 +93,7 @@ def evaluate(
 
 
 def _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, video, options):
-    from mat_sdk import robustness
+    from mat_sdk.evaluation import robustness
 
     for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
                         (video, "--video")):  # fmt: skip
@@ -112,7 +112,7 @@ def _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, vide
 
 
 def _grid(loaded, plot, episodes, seed, env_id, faults, stochastic, video, options):
-    from mat_sdk import tracking
+    from mat_sdk.evaluation import tracking
 
     for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
                         (video, "--video")):  # fmt: skip

@@ -86,8 +86,8 @@ def finetune(
     """
     import numpy as np
 
-    from mat_sdk.finetune import default_out
-    from mat_sdk.finetune import finetune as run
+    from mat_sdk.training.finetune import default_out
+    from mat_sdk.training.finetune import finetune as run
 
     changes = parse_faults(faults)
     out = Path(out_dir) if out_dir else default_out(env_id, changes)

@@ -38,7 +38,7 @@ def report(runs, out_dir) -> None:
         raise click.ClickException(
             "mat report needs rliable: pip install 'mat-sdk[report]'"
         ) from None
-    from mat_sdk.report import write_report
+    from mat_sdk.evaluation.report import write_report
 
     click.echo(write_report(list(runs), out_dir))
     click.echo(f"written: {out_dir / 'report.md'}")

@@ -1,5 +1,5 @@
-"""`mat train`: a run, or a seed set of runs, as `mat_sdk.runs` and `mat_sdk.multiseed` make
-them."""
+"""`mat train`: a run, or a seed set of runs, as `mat_sdk.training.runs` and
+`mat_sdk.training.multiseed` make them."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from mat_sdk.cli.common import (
     set_option,
     user_errors,
 )
-from mat_sdk.config import DEFAULT_RECIPE, RECIPES, PPOConfig, RunConfig, TrainConfig
-from mat_sdk.processes import usable_cores
+from mat_sdk.common.processes import usable_cores
+from mat_sdk.policy.config import DEFAULT_RECIPE, RECIPES, PPOConfig, RunConfig, TrainConfig
 
 # training options with options of their own (field -> the option's parameter)
 OWN = {"recipe": "recipe", "num_envs": "num_envs", "workers": "workers",
@@ -154,10 +154,10 @@ def train(
     With --ray, --workers counts Ray actors (each steps num-envs/workers copies); needs
     pip install 'mat-sdk[ray]'. A dead worker is replaced and its share re-collected.
     """
-    from mat_sdk import multiseed, runs
+    from mat_sdk.training import multiseed, runs
 
     if ray_address is not None:  # before any measurement or seed starts
-        from mat_sdk.ray_rollouts import require_ray
+        from mat_sdk.training.ray_rollouts import require_ray
 
         require_ray()
     typed = {

@@ -21,7 +21,7 @@ Options (keywords of `make`, `make_vec` and `make_team`):
     seed           random stream of the env (initial pose, target)
     randomize      domain randomization: true (every factor at its default range), or a
                    mapping of factors, e.g. {"payload": [0, 2], "push": null} (robots)
-Faults (`envs.Fault`, from `mat_sdk.faults`), each naming an agent or a joint:
+Faults (`envs.Fault`, from `mat_sdk.envs.core.faults`), each naming an agent or a joint:
 `Fault.zero(name)` leaves the agent in the team with its actuator(s) taking no action (a
 position actuator holds its start target); `Fault.remove(name)` takes the agent out of the
 team (its actuators produce nothing) so the agent count drops; `Fault.weak(name, S)` leaves
@@ -53,14 +53,19 @@ class _QuietSuiteModels(logging.Filter):
 
 logging.getLogger("absl").addFilter(_QuietSuiteModels())
 
-from mat_sdk.envs import terms
-from mat_sdk.envs.actuation import JointTargets
-from mat_sdk.envs.features import Observation
-from mat_sdk.envs.model_task import ModelEnvironment
-from mat_sdk.envs.parallel import TeamParallelEnv
-from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam, from_pettingzoo
-from mat_sdk.envs.randomization import Randomization
-from mat_sdk.envs.recipe import TrainingRecipe
+from mat_sdk.envs.core.faults import Fault, FaultsLike, as_mapping, faults_of
+from mat_sdk.envs.core.recipe import TrainingRecipe
+from mat_sdk.envs.core.vector import TeamFactory, VecTeam
+from mat_sdk.envs.mujoco import terms
+from mat_sdk.envs.mujoco.actuation import JointTargets
+from mat_sdk.envs.mujoco.features import Observation
+from mat_sdk.envs.mujoco.model_task import ModelEnvironment
+from mat_sdk.envs.mujoco.randomization import Randomization
+from mat_sdk.envs.mujoco.robots import env_ids
+from mat_sdk.envs.mujoco.sources import RobotSpec, UnusedActuators, from_dm_control, from_mjcf
+from mat_sdk.envs.mujoco.team import RobotTeam
+from mat_sdk.envs.pettingzoo.parallel import TeamParallelEnv
+from mat_sdk.envs.pettingzoo.team import PettingZooSpec, PettingZooTeam, from_pettingzoo
 from mat_sdk.envs.registry import (
     ENTRY_POINT_GROUP,
     FAMILY_IDENTITY,
@@ -76,11 +81,7 @@ from mat_sdk.envs.registry import (
     register,
     resolve,
 )
-from mat_sdk.envs.robots import env_ids
-from mat_sdk.envs.sources import RobotSpec, from_dm_control, from_mjcf
-from mat_sdk.envs.team import RobotTeam
-from mat_sdk.envs.vector import TeamFactory, VecTeam
-from mat_sdk.faults import Fault, FaultsLike, as_mapping, faults_of
+from mat_sdk.envs.tasks import legged
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -99,6 +100,7 @@ __all__ = [
     "TeamParallelEnv",
     "TrainingRecipe",
     "UntrustedEnvError",
+    "UnusedActuators",
     "VecTeam",
     "as_mapping",
     "check_trusted",
@@ -109,6 +111,7 @@ __all__ = [
     "from_pettingzoo",
     "id_of",
     "is_family",
+    "legged",
     "list_envs",
     "make",
     "make_team",

@@ -27,15 +27,15 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
 
-from mat_sdk.envs.games import CoordinationGame
-from mat_sdk.envs.mamujoco import PREFIX as MAMUJOCO
-from mat_sdk.envs.mamujoco import MaMuJoCoTeam
-from mat_sdk.envs.pettingzoo_team import PettingZooSpec, PettingZooTeam
-from mat_sdk.envs.recipe import TrainingRecipe
-from mat_sdk.envs.robots import FAMILIES, env_ids, spec_for
-from mat_sdk.envs.sources import RobotSpec
-from mat_sdk.envs.team import RobotTeam
-from mat_sdk.faults import Fault, faults_of
+from mat_sdk.envs.core.faults import Fault, faults_of
+from mat_sdk.envs.core.games import CoordinationGame
+from mat_sdk.envs.core.recipe import TrainingRecipe
+from mat_sdk.envs.mujoco.mamujoco import PREFIX as MAMUJOCO
+from mat_sdk.envs.mujoco.mamujoco import MaMuJoCoTeam
+from mat_sdk.envs.mujoco.robots import FAMILIES, env_ids, spec_for
+from mat_sdk.envs.mujoco.sources import RobotSpec
+from mat_sdk.envs.mujoco.team import RobotTeam
+from mat_sdk.envs.pettingzoo.team import PettingZooSpec, PettingZooTeam
 
 ENTRY_POINT_GROUP = "mat_sdk.envs"
 _REGISTERED: dict[str, Any] = {}

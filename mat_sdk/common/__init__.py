@@ -1,0 +1,1 @@
+"""Foundations every layer may use: atomic files and locks, worker processes, timing."""
