@@ -29,7 +29,7 @@ def final_distances(path: str, episodes: int, randomize: bool, seed: int = 10_00
         envs.make_vec("bimanual:reach", episodes, seed=seed, randomize=randomize) as vec,
     ):
         wiring = envs.make_team("bimanual:reach").wiring()
-        features = {f["name"]: f for f in wiring["observation"]["features"]}
+        features = {f.name: f for f in wiring.observation.features}
         columns = {name: features[f"sensor.{name}"] for name in bimanual.SENSORS}
         obs = vec.reset(seed=seed)
         distances = np.full((episodes, 2), np.nan)
@@ -39,10 +39,7 @@ def final_distances(path: str, episodes: int, randomize: bool, seed: int = 10_00
             final = info["final_obs"][first, 0]  # every agent observes both reaches
             for k, arm in enumerate(bimanual.ARMS):
                 hand, target = (columns[f"{arm}_{part}"] for part in ("hand", "target"))
-                gap = (
-                    final[:, target["start"] : target["stop"]]
-                    - final[:, hand["start"] : hand["stop"]]
-                )
+                gap = final[:, target.start : target.stop] - final[:, hand.start : hand.stop]
                 distances[first, k] = np.linalg.norm(gap, axis=1)
     return distances
 

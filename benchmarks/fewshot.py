@@ -46,7 +46,7 @@ def _evaluate_at(budget_steps: dict[int, float], episodes: int, rows: list, join
     pending = sorted(budget_steps)
 
     def callback(trainer: Trainer, metrics: dict) -> bool:
-        while pending and trainer.progress["steps"] >= pending[0]:
+        while pending and trainer.progress.steps >= pending[0]:
             steps = pending.pop(0)
             returns = trainer.evaluate(episodes)
             rows.append(

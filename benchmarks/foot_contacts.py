@@ -27,8 +27,8 @@ def contact_shares(path: str, command: tuple[float, float, float], steps: int, s
     team = envs.make_team(
         trained.id, trained.faults, seed=seed, command=list(command), **trained.options
     )
-    start, stop = team.wiring()["observation"]["source"]["contacts"]
-    feet = team.wiring()["observation"]["signals"]["contacts"]
+    layout = team.wiring().observation
+    (start, stop), feet = layout.source["contacts"], layout.signals["contacts"]
     obs = team.reset(seed=seed)
     warmup = round(1.0 / team.control_timestep)
     touching = np.zeros(stop - start)

@@ -94,7 +94,7 @@ def main() -> None:
     wiring = policy.wiring if policy.wiring and policy.wiring.has_observation else None
     if wiring is not None and hasattr(team, "physics"):
         data = team.physics.data
-        names = ", ".join(feature["name"] for feature in wiring.features)
+        names = ", ".join(feature.name for feature in wiring.features)
         print(f"observations built from the raw joint state by the bundle's wiring: {names}")
 
         def sense(_observed) -> None:

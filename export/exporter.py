@@ -97,7 +97,7 @@ def _build(
     graphs = _export_graphs(policy, normalizer, value_scale, staging)
     written = manifest(payload, cfg, graphs, checkpoint_path)
     if hasattr(team, "wiring"):  # robots; PettingZoo envs and games have no actuators
-        written["wiring"] = {**team.wiring(), "normalizer": NORMALIZER_PLACE}
+        written["wiring"] = team.wiring().placed(NORMALIZER_PLACE).to_json()
     written["agents"]["action_widths"] = [int(w) for w in team.action_widths]
     if cfg.action_type == "discrete":  # an agent never takes its padding choices
         written["agents"]["choices"] = [int(c) for c in team.choices]

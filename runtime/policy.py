@@ -37,7 +37,8 @@ import onnxruntime as ort
 
 from mat_runtime.bundle import read_bundle
 from mat_runtime.errors import BundleError, InputError
-from mat_runtime.wiring import Wiring, check_wiring
+from mat_runtime.wiring import Wiring
+from mat_runtime.wiring_schema import WiringSpec
 
 # The oldest onnxruntime verified to run the graphs of each opset the exporter writes:
 # `decode*.onnx` uses ONNX's `Attention` op (opset 24); 1.23.2 and older refuse the opset.
@@ -127,9 +128,10 @@ class Policy:
             self._own_choices = own.astype(np.float32)  # [trained agents, action_size]
         wiring = manifest.get("wiring")
         if wiring is not None:
-            check_wiring(wiring, self.obs_dim, self.action_size, str(path / "manifest.json"))
+            where = str(path / "manifest.json")
+            wiring = Wiring(WiringSpec.from_json(wiring, self.obs_dim, self.action_size, where))
         # how the arrays map onto the robot (`mat_runtime.wiring`); None for older bundles
-        self.wiring: Wiring | None = None if wiring is None else Wiring(wiring)
+        self.wiring: Wiring | None = wiring
 
     @classmethod
     def load(

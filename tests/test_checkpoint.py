@@ -145,9 +145,9 @@ def test_checkpoints_written_by_earlier_versions_still_load_resume_and_export(pa
     loaded = CheckpointPolicy.from_checkpoint(path)
     with Trainer.load(path, out_dir=tmp_path / "run") as trainer:
         assert trainer.model_config == loaded.policy.cfg
-        start = trainer.progress["steps"]
+        start = trainer.progress.steps
         trainer.learn(start + 16, progress_bar=False)
-        assert trainer.progress["steps"] == start + 16
+        assert trainer.progress.steps == start + 16
     export(path, tmp_path / "bundle", agent_counts=(1, 2))
     policy = Policy.load(tmp_path / "bundle")
     assert policy.action_size == loaded.policy.cfg.action_size

@@ -524,7 +524,7 @@ def test_a_fixed_base_arms_first_joint_is_observed_through_its_encoder():
     its encoder reads it, so the observation has all seven joints of each arm."""
     team = envs.make_team("bimanual:reach", seed=0)
     team.reset()
-    features = {f["name"]: f["stop"] - f["start"] for f in team.wiring()["observation"]["features"]}
+    features = {f.name: f.stop - f.start for f in team.wiring().observation.features}
     assert features["joints.pos"] == features["joints.vel"] == 7
-    assert team.wiring()["observation"]["signals"]["joint_pos"][0] == "left_shoulder_pan_joint"
+    assert team.wiring().observation.signals["joint_pos"][0] == "left_shoulder_pan_joint"
     assert features["sensor.left_hand"] == features["sensor.right_target"] == 3

@@ -113,7 +113,7 @@ def test_latency_delays_the_action_the_motors_get_by_k_steps():
     assert np.allclose(sent[2], plain._targets.targets(actions[0].reshape(-1)))
     assert np.allclose(sent[3], plain._targets.targets(actions[1].reshape(-1)))
     # what the agents observe as their previous action is what they sent, not what arrived
-    last = team.wiring()["observation"]["source"]["last_action"]
+    last = team.wiring().observation.source["last_action"]
     assert np.allclose(team._source()[last[0] : last[1]], 0.4)
 
 
@@ -122,9 +122,7 @@ def test_observation_noise_is_in_each_signals_units_and_only_on_the_sensed_obser
     sensed = team.reset()
     clean = team.observe()
     difference = np.abs(sensed - clean)
-    features = {
-        f["name"]: slice(f["start"], f["stop"]) for f in team.wiring()["observation"]["features"]
-    }
+    features = {f.name: slice(f.start, f.stop) for f in team.wiring().observation.features}
     assert 0 < difference[:, features["joints.pos"]].max() <= 0.01
     assert 0.01 < difference[:, features["gyro"]].max() <= 0.2
     assert difference[:, features["joints.vel"]].max() == 0  # no noise on unnamed signals

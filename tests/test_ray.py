@@ -36,7 +36,7 @@ def test_two_ray_workers_learn_the_game_and_a_killed_worker_is_replaced():
 
     def kill_one_worker_at_update_3(trainer, metrics):
         returns.append(metrics["return_mean"])
-        if trainer.progress["updates"] == 3:
+        if trainer.progress.updates == 3:
             pid = ray.get(trainer._remote.actors[1].pid.remote())
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
@@ -46,8 +46,8 @@ def test_two_ray_workers_learn_the_game_and_a_killed_worker_is_replaced():
         trainer.learn(steps, callback=kill_one_worker_at_update_3, progress_bar=False)
         assert killed and trainer._remote.replacements == 1
         per_update = GAME["num_envs"] * GAME["rollout_length"]
-        assert trainer.progress["updates"] == -(-steps // per_update)  # none lost
-        assert len(returns) == trainer.progress["updates"]
+        assert trainer.progress.updates == -(-steps // per_update)  # none lost
+        assert len(returns) == trainer.progress.updates
         final = np.mean(trainer.evaluate(episodes=50))
     # as the local test asks of a local run; random play scores 2/27 = 0.07
     assert np.mean(returns[-5:]) >= 0.9 and final >= 0.9, (returns, final)
@@ -76,7 +76,7 @@ def test_a_ray_worker_killed_mid_rollout_is_replaced_and_no_update_is_lost(tmp_p
         trainer.learn(600, progress_bar=False)
         assert (plan / "other.claimed").exists()  # the kill happened
         assert trainer._remote.replacements == 1
-        assert trainer.progress["updates"] == 3 and trainer.progress["steps"] == 600
+        assert trainer.progress.updates == 3 and trainer.progress.steps == 600
 
 
 def test_a_seed_set_on_ray_retries_killed_seeds_from_their_checkpoints(tmp_path, monkeypatch):

@@ -65,14 +65,12 @@ def test_a_start_outside_a_joints_range_and_an_unknown_keyframe_are_refused():
 
 def test_observations_come_from_the_hardwares_signals_only():
     team = _team(seed=0, command=[0.7, 0.0, 0.0])
-    names = [feature["name"] for feature in team.wiring()["observation"]["features"]]
+    names = [feature.name for feature in team.wiring().observation.features]
     assert names == [
         "joints.pos", "joints.vel", "gravity", "gyro", "contacts", "command", "last_action", "id",
     ]  # fmt: skip
     obs = team.reset(seed=0)
-    columns = {
-        f["name"]: slice(f["start"], f["stop"]) for f in team.wiring()["observation"]["features"]
-    }
+    columns = {f.name: slice(f.start, f.stop) for f in team.wiring().observation.features}
     np.testing.assert_allclose(obs[:, columns["command"]], [[0.7, 0.0, 0.0]] * 4, atol=1e-7)
     assert np.allclose(obs[:, columns["gravity"]][:, 2], -1.0, atol=0.01)  # standing level
     start = team._task.start_qpos
@@ -90,8 +88,8 @@ def test_privileged_signals_are_a_choice():
     )  # fmt: skip
     team = spec.build(seed=0)
     obs = team.reset(seed=0)
-    feature = next(f for f in team.wiring()["observation"]["features"] if f["name"] == "height")
-    assert obs[0, feature["start"]] == pytest.approx(team.physics.data.qpos[2], abs=1e-6)
+    feature = next(f for f in team.wiring().observation.features if f.name == "height")
+    assert obs[0, feature.start] == pytest.approx(team.physics.data.qpos[2], abs=1e-6)
     with pytest.raises(ValueError, match="privileged signals are"):
         envs.Observation(privileged=("mass",))
 
@@ -105,8 +103,8 @@ def test_actions_are_joint_targets_around_the_start_pose_clipped_to_the_control_
     home = model.key_ctrl[model.key("home").id]
     expected = np.clip(home + 0.5 * actions.reshape(-1), *model.actuator_ctrlrange.T)
     np.testing.assert_allclose(ctrl, expected)
-    column = team.wiring()["agents"][0]["action"][2]
-    assert (column["offset"], column["scale"], column["target"]) == (-1.8, 0.5, "FL_calf_joint")
+    column = team.wiring().agents[0].action[2]
+    assert (column.offset, column.scale, column.target) == (-1.8, 0.5, "FL_calf_joint")
 
 
 def test_a_pd_layer_turns_targets_into_torques_on_the_torque_motor_model():
@@ -119,8 +117,8 @@ def test_a_pd_layer_turns_targets_into_torques_on_the_torque_motor_model():
     assert team.physics.data.qpos[2] > 0.2
     forces = team.physics.data.actuator_force
     assert np.all(np.abs(forces) <= team.physics.model.ptr.actuator_ctrlrange[:, 1] + 1e-9)
-    column = team.wiring()["agents"][0]["action"][0]
-    assert (column["kp"], column["kd"], column["target"]) == (50.0, 0.5, "FL_hip_joint")
+    column = team.wiring().agents[0].action[0]
+    assert (column.kp, column.kd, column.target) == (50.0, 0.5, "FL_hip_joint")
     with pytest.raises(ValueError, match="torque motors: JointTargets needs kp and kd"):
         envs.from_mjcf(go2.MODELS / "scene.xml", go2.LAYOUT, go2.REWARD, commands=go2.WALK,
                        actions=envs.JointTargets(0.5))  # fmt: skip

@@ -17,6 +17,7 @@ from helpers import make_checkpoint
 import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
+from mat_runtime.wiring_schema import WiringSpec
 from mat_sdk.envs import make_team
 from mat_sdk.evaluation.episodes import CheckpointPolicy
 from tests.recipes import with_examples
@@ -845,7 +846,7 @@ def test_the_bundles_wiring_rebuilds_observations_and_commands_from_raw_state(
     policy = Policy.load(tmp_path / "bundle")
     team = make_team(env_id, options.get("faults"), **options.get("env_options", {}))
     wiring, data = policy.wiring, team.physics.data
-    assert [a["name"] for a in wiring.agents] == team.agents
+    assert [a.name for a in wiring.agents] == team.agents
     assert wiring.control_timestep == team.control_timestep
     rng = np.random.default_rng(0)
     obs = team.reset(seed=0)
@@ -861,7 +862,27 @@ def test_the_bundles_wiring_rebuilds_observations_and_commands_from_raw_state(
     assert "control timestep" in described and "observation (every agent): joints.qpos" in described
     if "faults" in options:  # a removed agent is not wired; a zeroed actuator drives nothing
         assert "agent_1" not in described and "ffoot, " not in described
-        assert [c["ctrl"] for c in wiring.agents[-1]["action"]] == [None]
+        assert [c.ctrl for c in wiring.agents[-1].action] == [None]
+
+
+@pytest.mark.parametrize(
+    "env_id",
+    [
+        "cheetah-6x1",  # torque actuators driven directly
+        "my_robots:arm",  # position servos: their gains and the joints' ranges
+        "go2:walk_torque",  # torque motors behind a PD layer, hardware signals, commands
+        "mamujoco:Ant-4x2",  # no observation layout: Gymnasium builds the observations
+    ],
+)
+def test_the_wiring_an_env_writes_is_the_wiring_the_runtime_reads(env_id):
+    """One schema for both sides: what an env describes survives the manifest's JSON exactly."""
+    with_examples()
+    team = make_team(env_id)
+    written = team.wiring().placed("inside the graphs")
+    text = json.dumps(written.to_json())
+    read = WiringSpec.from_json(json.loads(text), team.obs_dim, team.action_width, "manifest")
+    assert read == written
+    assert json.dumps(read.to_json()) == text
 
 
 def test_a_bundle_without_wiring_still_loads_and_says_so(bundles, tmp_path):

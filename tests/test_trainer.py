@@ -76,8 +76,9 @@ def logged_rows(run_dir) -> list[dict]:
     return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
 
 
-def finished_state(trainer: Trainer) -> tuple[dict, dict]:
-    return {k: v.clone() for k, v in trainer.policy.state_dict().items()}, dict(trainer.progress)
+def finished_state(trainer: Trainer) -> tuple[dict, checkpoint.Progress]:
+    weights = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
+    return weights, dataclasses.replace(trainer.progress)
 
 
 def assert_same_run(a: tuple[dict, dict], b: tuple[dict, dict], a_dir, b_dir) -> None:
@@ -142,7 +143,7 @@ def test_interrupted_and_resumed_run_matches_an_uninterrupted_one(tmp_path, env_
     with Trainer(env_id, algo, out_dir=tmp_path / "b", **run) as first:
         first.learn(60, progress_bar=False)
     with Trainer.load(tmp_path / "b" / "checkpoint.pt", out_dir=tmp_path / "b") as resumed:
-        assert resumed.progress == {"steps": 60, "updates": 2}
+        assert resumed.progress == checkpoint.Progress(steps=60, updates=2)
         resumed.learn(120, progress_bar=False)
         assert_same_run(uninterrupted, finished_state(resumed), tmp_path / "a", tmp_path / "b")
     assert len(logged_rows(tmp_path / "a")) == 4
@@ -369,7 +370,7 @@ def test_progress_bar_counts_whole_updates(capsys):
     """40 steps asked, 30 per update: the run does 60 and its bar ends full at 60/60."""
     with Trainer("hopper-2x2", "mat", **TINY) as trainer:
         trainer.learn(40)
-        assert trainer.progress["steps"] == 60
+        assert trainer.progress.steps == 60
     bar = capsys.readouterr().err
     assert "60/60" in bar and "/40" not in bar
 

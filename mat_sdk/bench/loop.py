@@ -110,7 +110,7 @@ def main(env_id: str = "go2:walk", updates: int = 3, rounds: int = 3) -> None:
         for _ in range(rounds):
             for label, trainer in trainers.items():
                 before = waits[label].seconds
-                goal = trainer.progress["steps"] + per_update * updates
+                goal = trainer.progress.steps + per_update * updates
                 trainer.learn(goal, progress_bar=False, callback=_into(times[label]))
                 waited[label] += waits[label].seconds - before
         rows, base = [], None

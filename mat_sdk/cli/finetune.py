@@ -112,7 +112,7 @@ def finetune(
     result.trainer.close()
     click.echo(
         f"zero-shot return {result.zero_shot_mean:.1f} ± {np.std(result.zero_shot):.1f} -> "
-        f"after {result.trainer.progress['steps']:,} steps {result.final_mean:.1f} ± "
+        f"after {result.trainer.progress.steps:,} steps {result.final_mean:.1f} ± "
         f"{np.std(result.final):.1f} ({episodes} episodes each)"
     )
     click.echo(f"checkpoint: {out / 'checkpoint.pt'}   summary: {out / 'finetune.json'}")

@@ -70,14 +70,14 @@ class EvaluationLog:
     def __call__(self, trainer, metrics: dict) -> None:
         done = self.evaluations(trainer)
         due = (done[-1]["step_count"] if done else 0) + self.every
-        if trainer.progress["steps"] < due:
+        if trainer.progress.steps < due:
             return
         returns = trainer.evaluate(self.episodes)
         best = max((np.mean(e["return"]) for e in done), default=-np.inf)
         if np.mean(returns) > best:
             trainer.save(self.out_dir / BEST_NAME)
         run = self._run(trainer)
-        run[f"step_{len(done) + 1}"] = {"step_count": trainer.progress["steps"], "return": returns}
+        run[f"step_{len(done) + 1}"] = {"step_count": trainer.progress.steps, "return": returns}
         self._write()
 
     def finish(self, trainer) -> list[float] | None:

@@ -13,6 +13,7 @@ import re
 import shutil
 import tempfile
 import warnings
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,14 @@ NORMALISERS = {
 
 class CheckpointError(ValueError):
     """The file is missing, not a MAT checkpoint, or of a version this SDK cannot read."""
+
+
+@dataclass
+class Progress:
+    """How far a run has gone: env steps taken and updates made (a checkpoint's `progress`)."""
+
+    steps: int = 0
+    updates: int = 0
 
 
 def training_payload(
@@ -68,7 +77,7 @@ def training_payload(
         },
         "model": {k: v.cpu() for k, v in policy.state_dict().items()},
         "optimizer": optimizer_state,
-        "progress": dict(progress),
+        "progress": asdict(progress),
         "rng": {
             "torch": collector.generator.get_state().cpu(),
             "shuffle": collector.shuffle_generator.get_state(),
@@ -168,7 +177,7 @@ def restore_pretrained(
 
 def restore_training(
     payload: dict[str, Any], path, *, policy, params, optimizer, collectors, value_norm, seed: int
-) -> dict[str, int]:
+) -> Progress:
     """Put a `training_payload` back into a run built from its config (its policy, flat
     parameters and optimizer, collectors and value normaliser); -> its progress. Or raise
     `CheckpointError` saying the file at `path` cannot be resumed from."""
@@ -183,14 +192,14 @@ def restore_training(
         ) from None
 
 
-def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -> dict[str, int]:
+def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -> Progress:
     collector = collectors[0]
     load_weights(policy, payload["model"], "the checkpoint")
     collector.obs_norm.load_state_dict(payload["obs_norm"])
     value_norm.load_state_dict(payload["value_norm"])
     optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
-    progress = dict(payload["progress"])
-    saved_on = payload["rng"].get("device", "cpu")  # checkpoints before 2026-12: cpu only
+    progress = Progress(int(payload["progress"]["steps"]), int(payload["progress"]["updates"]))
+    saved_on = payload["rng"].get("device", "cpu")  # older checkpoints: cpu only
     if saved_on == collector.device.type:
         collector.generator.set_state(payload["rng"]["torch"])
     else:  # CPU and CUDA generators differ: exact resume needs the same device type
@@ -200,7 +209,7 @@ def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -
             "exactly as it would have on the same device",
             stacklevel=4,
         )
-        collector.generator.manual_seed(seed + progress["updates"])
+        collector.generator.manual_seed(seed + progress.updates)
     collector.shuffle_generator.set_state(payload["rng"]["shuffle"])
     more = payload.get("more_envs", [])  # older checkpoints: one env only
     saved = [{"envs": payload["envs"], "next_obs": payload["next_obs"]}, *more]

@@ -147,7 +147,7 @@ def _write_summary(path: Path, trainer: Trainer, checkpoint, zero_shot, final) -
         "env": cfg.env.id,
         "faults": envs.as_mapping(cfg.env.faults),
         "agents": list(trainer.env.agents),
-        "steps": trainer.progress["steps"],
+        "steps": trainer.progress.steps,
         "zero_shot": stats(zero_shot),
         "final": stats(final),
     }

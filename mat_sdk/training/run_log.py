@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mat_sdk.common import files
-from mat_sdk.policy.checkpoint import remove_stale_temp_files
+from mat_sdk.policy.checkpoint import Progress, remove_stale_temp_files
 
 METRICS_NAME = "metrics.csv"
 # what every row has (`update_metrics`) and the curve reads; a header without them is no run's
@@ -102,7 +102,7 @@ class RunLog:
 
 
 def update_metrics(
-    progress: dict[str, int],
+    progress: Progress,
     finished: list[float],
     rewards,
     losses: dict[str, float],
@@ -114,8 +114,8 @@ def update_metrics(
     the team reward per env step (`rewards` of its `env_steps`), the losses and diagnostics,
     and the timings."""
     return {
-        "steps": progress["steps"],
-        "updates": progress["updates"],
+        "steps": progress.steps,
+        "updates": progress.updates,
         "return_mean": float(np.mean(finished)) if finished else math.nan,
         "return_min": float(np.min(finished)) if finished else math.nan,
         "return_max": float(np.max(finished)) if finished else math.nan,

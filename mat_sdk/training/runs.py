@@ -110,7 +110,7 @@ def train(request: RunRequest, say: Say = print, progress_bar: bool = True) -> R
                 )
             trainer.learn(request.steps, callback=evaluations, progress_bar=progress_bar)
             absolute = None
-            if evaluations is not None and trainer.progress["steps"] >= request.steps:
+            if evaluations is not None and trainer.progress.steps >= request.steps:
                 absolute = evaluations.finish(trainer)
                 if absolute is not None:
                     say(
@@ -146,7 +146,7 @@ def start(request: RunRequest, say: Say = print) -> Trainer:
         trainer = Trainer.load(request.checkpoint, out_dir=request.out, **request.given_options())
         changed = ", ".join(f"{k}={v}" for k, v in trainer.resumed_with.items())
         say(
-            f"resuming {request.checkpoint} at {trainer.progress['steps']:,} steps"
+            f"resuming {request.checkpoint} at {trainer.progress.steps:,} steps"
             + (f" (with {changed})" if changed else "")
         )
         return trainer

@@ -87,7 +87,7 @@ class Trainer:
             RolloutCollector(env, self.policy, cfg, self.device, share=first)
             for env in self.envs[1:]
         ]
-        self.progress = {"steps": 0, "updates": 0}
+        self.progress = checkpoint.Progress()
         self.out_dir = Path(out_dir) if out_dir is not None else None
 
     def build_optimizer(self) -> None:
@@ -105,7 +105,7 @@ class Trainer:
     @property
     def collector(self) -> RolloutCollector:
         """The collector of the next update: updates take the env ids in turn."""
-        return self.collectors[self.progress["updates"] % len(self.collectors)]
+        return self.collectors[self.progress.updates % len(self.collectors)]
 
     @property
     def obs_norm(self) -> RunningMeanStd:
@@ -138,26 +138,26 @@ class Trainer:
         per_update = self.config.ppo.steps_per_update
         checkpoint_every = self.config.run.checkpoint_every
         self.gradients.start()  # the update workers start up during the first rollout
-        log = RunLog(self.out_dir, resume_after=self.progress["updates"]) if self.out_dir else None
-        done = self.progress["steps"]
+        log = RunLog(self.out_dir, resume_after=self.progress.updates) if self.out_dir else None
+        done = self.progress.steps
         bar = ProgressBar(self.planned_steps(total_steps), done, progress_bar)
         try:
-            while self.progress["steps"] < total_steps:
+            while self.progress.steps < total_steps:
                 start = time.perf_counter()
                 trajectory = self.rollout()
                 rolled = time.perf_counter()
                 losses = self._update(trajectory)
                 updated = time.perf_counter()
                 losses |= {**trajectory.diagnostics(), **self._action_std()}
-                self.progress["steps"] += per_update
-                self.progress["updates"] += 1
+                self.progress.steps += per_update
+                self.progress.updates += 1
                 metrics = update_metrics(
                     self.progress, trajectory.finished, trajectory.rewards, losses, per_update,
                     rollout_s=rolled - start, update_s=updated - rolled,
                 )  # fmt: skip
                 if log:
                     log.write(metrics)
-                if self.out_dir and self.progress["updates"] % checkpoint_every == 0:
+                if self.out_dir and self.progress.updates % checkpoint_every == 0:
                     self.save(self.out_dir / CHECKPOINT_NAME)
                 bar.show(metrics, per_update)
                 if callback is not None and callback(self, metrics) is False:
@@ -174,7 +174,7 @@ class Trainer:
         """The env steps `learn(total_steps)` ends at: training runs whole updates of
         num_envs x rollout_length steps, so it may go past `total_steps`."""
         per_update = self.config.ppo.steps_per_update
-        done = self.progress["steps"]
+        done = self.progress.steps
         return done + max(0, math.ceil((total_steps - done) / per_update)) * per_update
 
     @torch.no_grad()
@@ -204,7 +204,7 @@ class Trainer:
             )  # fmt: skip
         if not finite:
             raise TrainingDiverged(
-                f"non-finite loss at update {self.progress['updates'] + 1}; training stopped, "
+                f"non-finite loss at update {self.progress.updates + 1}; training stopped, "
                 "the last good checkpoint is kept"
             )
         return losses

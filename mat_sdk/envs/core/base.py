@@ -62,10 +62,6 @@ def position_features(position: str | None, count: int) -> np.ndarray:
     raise ValueError(f"position must be one of {POSITIONS} or None, got {position!r}")
 
 
-# An action column that drives nothing (a zeroed fault, a narrower agent's padding).
-NO_ACTUATOR = {"actuator": None, "ctrl": None, "scale": 0.0, "offset": 0.0}
-
-
 def as_array(actions) -> np.ndarray:
     """`actions` as given, as an array (no conversion of its values), or ValueError."""
     try:

@@ -28,8 +28,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from mat_runtime.wiring_schema import NO_ACTUATOR, ActionColumn, AgentWiring, WiringSpec
 from mat_sdk.envs.core.base import (
-    NO_ACTUATOR,
     ArrayTeam,
     checked_episode_limit,
     diverged,
@@ -271,7 +271,7 @@ class MaMuJoCoTeam(ArrayTeam):
                 )
         return mask
 
-    def wiring(self) -> dict:
+    def wiring(self) -> WiringSpec:
         """How the policy's arrays map onto the robot (see `RobotTeam.wiring`): per agent the
         joints it drives, each action column as the MuJoCo ctrl it sets (Gymnasium writes the
         action to ctrl as is), and the control timestep. Gymnasium-Robotics builds the
@@ -282,29 +282,19 @@ class MaMuJoCoTeam(ArrayTeam):
             ids = [int(node.act_ids) for node in partition]
             actuators = [model.actuator(i).name or f"#{i}" for i in ids]  # Ant's have no names
             action = [
-                {"actuator": name, "ctrl": i, "scale": 1.0, "offset": 0.0}
+                ActionColumn(actuator=name, ctrl=i, scale=1.0, offset=0.0)
                 for name, i in zip(actuators, ids, strict=True)
             ]
             action += [NO_ACTUATOR] * (self.action_width - len(actuators))
-            joints = [node.label for node in partition]
-            agents.append(
-                {
-                    "name": self.agents[row],
-                    "actuators": actuators,
-                    "joints": joints,
-                    "action": action,
-                }
-            )
+            joints = tuple(node.label for node in partition)
+            agents.append(AgentWiring(self.agents[row], tuple(actuators), joints, tuple(action)))
         for name in self.agents[self._real :]:  # padding drives nothing
-            agents.append(
-                {"name": name, "actuators": [], "joints": [],
-                 "action": [NO_ACTUATOR] * self.action_width}
-            )  # fmt: skip
-        return {
-            "control_timestep": self.control_timestep,
-            "physics_timestep": float(model.opt.timestep),
-            "agents": agents,
-        }
+            agents.append(AgentWiring(name, (), (), (NO_ACTUATOR,) * self.action_width))
+        return WiringSpec(
+            control_timestep=self.control_timestep,
+            physics_timestep=float(model.opt.timestep),
+            agents=tuple(agents),
+        )
 
     def get_state(self) -> dict:
 

@@ -26,8 +26,15 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.base import (
+from mat_runtime.wiring_schema import (
     NO_ACTUATOR,
+    ActionColumn,
+    AgentWiring,
+    Feature,
+    ObservationLayout,
+    WiringSpec,
+)
+from mat_sdk.envs.core.base import (
     SETTLE_SECONDS,
     ArrayTeam,
     checked_episode_limit,
@@ -268,11 +275,11 @@ class RobotTeam(ArrayTeam):
         self.obs_dim = self._obs_index.shape[1]
         # the name and columns of each feature, in order (every agent's row has the same)
         columns = np.cumsum([0, *widths.values()])
-        self._features = [
-            {"name": name, "start": int(start), "stop": int(start + width)}
+        self._features = tuple(
+            Feature(name, int(start), int(start + width))
             for (name, width), start in zip(widths.items(), columns, strict=False)
             if width
-        ]
+        )
         self._constants = np.array(constants)
         self._offset = None
         if self.spec.observation is not None:  # joint positions relative to the start pose
@@ -371,8 +378,9 @@ class RobotTeam(ArrayTeam):
         observation source in `wiring()`; empty for tasks without them."""
         return np.asarray(self._extra_features(), dtype=np.float64)
 
-    def wiring(self) -> dict:
-        """How the policy's arrays map onto this robot, for a controller on the hardware:
+    def wiring(self) -> WiringSpec:
+        """How the policy's arrays map onto this robot, for a controller on the hardware
+        (`mat_runtime.wiring_schema` gives the layout):
 
         - per agent, the actuators and joints it drives and, per action column, the actuator
           it commands (its name and index in MuJoCo's ctrl) with
@@ -397,66 +405,67 @@ class RobotTeam(ArrayTeam):
                 k = drives.get(row * self.action_width + col)
                 action.append(NO_ACTUATOR if k is None else self._action_column(k))
             agents.append(
-                {
-                    "name": self.agents[row],
-                    "actuators": [_actuator_name(model, a) for a in self.team[agent].actuators],
-                    "joints": self.joint_names(agent),
-                    "action": action,
-                }
+                AgentWiring(
+                    name=self.agents[row],
+                    actuators=tuple(_actuator_name(model, a) for a in self.team[agent].actuators),
+                    joints=tuple(self.joint_names(agent)),
+                    action=tuple(action),
+                )
             )
         source, start = {}, 0
         for signal in self._signals:
-            source[signal.name] = [start, start + signal.size]
+            source[signal.name] = (start, start + signal.size)
             start += signal.size
-        source["constants"] = [start, start + len(self._constants)]
-        observation = {
-            "features": self._features,
-            "source": source,
-            "constants": self._constants.tolist(),
-            "index": self._obs_index.tolist(),
-        }
-        if self._offset is not None:
-            observation["offset"] = self._offset.tolist()
-            observation["signals"] = {signal.name: signal.labels for signal in self._signals}
-        wiring = {
-            "control_timestep": float(self.control_timestep),
-            "physics_timestep": float(model.opt.timestep),
-            "agents": agents,
-            "observation": observation,
-        }
+        source["constants"] = (start, start + len(self._constants))
+        with_offset = self._offset is not None
+        observation = ObservationLayout(
+            source=source,
+            constants=tuple(self._constants.tolist()),
+            index=tuple(tuple(row) for row in self._obs_index.tolist()),
+            features=self._features,
+            signals={s.name: tuple(s.labels) for s in self._signals} if with_offset else {},
+            offset=tuple(self._offset.tolist()) if with_offset else None,
+        )
         commands = getattr(getattr(self._task, "recipe", None), "commands", None)
-        if commands is not None:  # the ranges the policy was trained on, for a controller
-            wiring["commands"] = {name: list(getattr(commands, name)) for name in commands.names}
-        return wiring
+        return WiringSpec(
+            control_timestep=float(self.control_timestep),
+            physics_timestep=float(model.opt.timestep),
+            agents=tuple(agents),
+            observation=observation,
+            # the ranges the policy was trained on, for a controller
+            commands={}
+            if commands is None
+            else {name: tuple(getattr(commands, name)) for name in commands.names},
+        )
 
-    def _action_column(self, k: int) -> dict:
+    def _action_column(self, k: int) -> ActionColumn:
         """The wiring of driven actuator k (`wiring`)."""
-        ctrl = int(self._ctrl_index[k])
-        column = {"actuator": _actuator_name(self._model, ctrl), "ctrl": ctrl}
+        model, ctrl = self._model, int(self._ctrl_index[k])
+        named = {"actuator": _actuator_name(model, ctrl), "ctrl": ctrl}
         if self._targets is None:
             half = float(self._ctrl_half[k])
-            return {**column, "scale": half, "offset": float(self._ctrl_low[k]) + half}
+            return ActionColumn(scale=half, offset=float(self._ctrl_low[k]) + half, **named)
         targets = self._targets
-        column |= {
-            "scale": float(targets.scale[k]),
-            "offset": float(targets.offset[k]),
-            "target": self._model.joint(int(self._model.actuator_trnid[ctrl, 0])).name,
-        }
+        joint = int(model.actuator_trnid[ctrl, 0])
+        named |= {"scale": float(targets.scale[k]), "offset": float(targets.offset[k])}
+        named["target"] = model.joint(joint).name
         if targets.pd:
-            return {**column, "kp": targets.kp, "kd": targets.kd,
-                    "torque": [float(targets.low[k]), float(targets.high[k])]}  # fmt: skip
+            torque = (float(targets.low[k]), float(targets.high[k]))
+            return ActionColumn(kp=targets.kp, kd=targets.kd, torque=torque, **named)
         low, high = (
             float(v) if np.isfinite(v) else None for v in (targets.low[k], targets.high[k])
         )
-        column |= {"low": low, "high": high}
-        if self._model.actuator_biastype[ctrl] == mujoco.mjtBias.mjBIAS_AFFINE:
+        servo = None
+        if model.actuator_biastype[ctrl] == mujoco.mjtBias.mjBIAS_AFFINE:
             # a position servo: the gains the robot's motor driver must be given for it
-            kp, kd = self._model.actuator_gainprm[ctrl, 0], -self._model.actuator_biasprm[ctrl, 2]
-            column["servo"] = [float(kp), float(kd)]
-        joint = int(self._model.actuator_trnid[ctrl, 0])
-        if self._model.jnt_limited[joint]:
-            column["range"] = [float(v) for v in self._model.jnt_range[joint]]
-        return column
+            servo = (
+                float(model.actuator_gainprm[ctrl, 0]),
+                float(-model.actuator_biasprm[ctrl, 2]),
+            )
+        joint_range = None
+        if model.jnt_limited[joint]:
+            joint_range = (float(model.jnt_range[joint, 0]), float(model.jnt_range[joint, 1]))
+        return ActionColumn(low=low, high=high, servo=servo, range=joint_range, **named)
 
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
