@@ -36,7 +36,7 @@ def contact_shares(path: str, command: tuple[float, float, float], steps: int, s
         action = loaded.act(obs[None])[0]
         obs, _, terminated, truncated = team.advance(action)
         if step >= warmup:
-            touching += team._source()[start:stop] > 0
+            touching += team.observations.source()[start:stop] > 0
         if terminated or truncated:
             break
     return feet, touching / steps

@@ -130,8 +130,8 @@ def test_joint_targets_reach_as_far_as_the_robots_weight_moment_over_each_stiffn
         team = envs.make_team(f"quadrupeds:{robot}", seed=0)
         scale = team._task._step.scale
         kp = -team.physics.model.ptr.actuator_biasprm[:, 1]
-        assert np.allclose(team._targets.scale, WALK.action_torque * scale.torque / kp)
-        scales[robot] = float(team._targets.scale[0])
+        assert np.allclose(team.actions.targets.scale, WALK.action_torque * scale.torque / kp)
+        scales[robot] = float(team.actions.targets.scale[0])
     assert scales["go2"] == pytest.approx(0.5, abs=0.01)  # the Go2's measured 0.5 rad
     assert scales["a1"] < scales["spot"] < scales["go2"]  # A1's kp 100, Spot's 500
 

@@ -103,18 +103,18 @@ def test_latency_delays_the_action_the_motors_get_by_k_steps():
     plain = envs.make_team(GO2, seed=0)
     team.reset(), plain.reset()
     ctrl = team.physics.data.ctrl
-    home_ctrl = plain._targets.targets(np.zeros(12))
+    home_ctrl = plain.actions.targets.targets(np.zeros(12))
     actions = [np.full((4, 3), value) for value in (0.3, -0.2, 0.1, 0.4)]
     sent = []
     for action in actions:
         team.advance(action)
         sent.append(ctrl.copy())
     assert np.allclose(sent[0], home_ctrl) and np.allclose(sent[1], home_ctrl)
-    assert np.allclose(sent[2], plain._targets.targets(actions[0].reshape(-1)))
-    assert np.allclose(sent[3], plain._targets.targets(actions[1].reshape(-1)))
+    assert np.allclose(sent[2], plain.actions.targets.targets(actions[0].reshape(-1)))
+    assert np.allclose(sent[3], plain.actions.targets.targets(actions[1].reshape(-1)))
     # what the agents observe as their previous action is what they sent, not what arrived
     last = team.wiring().observation.source["last_action"]
-    assert np.allclose(team._source()[last[0] : last[1]], 0.4)
+    assert np.allclose(team.observations.source()[last[0] : last[1]], 0.4)
 
 
 def test_observation_noise_is_in_each_signals_units_and_only_on_the_sensed_observation():

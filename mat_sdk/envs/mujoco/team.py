@@ -8,13 +8,9 @@ costs little more than the physics itself.
 Observation of an agent, in order (each block zero-padded to the widest agent's):
 own joints' positions | velocities | upstream neighbours' positions | velocities |
 downstream positions | velocities | shared features | own previous action (when observed) |
-one-hot agent id | position (`base.POSITIONS`, when asked for).
-
-The observation is gathered from named signals. By default they are MuJoCo's raw `qpos`,
-`qvel` and the task's features, and the shared features are the root's height, orientation
-and velocities; with an `Observation` (`features.py`) they are what a robot's hardware
-measures: `joint_pos` (relative to the start pose), `joint_vel`, the IMU, sensors, contacts,
-the command and the previous action. `wiring()` describes the signals for a controller.
+one-hot agent id | position (`base.POSITIONS`, when asked for); `observation_map.py` gathers
+it from the robot's signals, `action_map.py` turns actions into controls, and `wiring()`
+describes both for a controller.
 """
 
 from __future__ import annotations
@@ -26,14 +22,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from mat_runtime.wiring_schema import (
-    NO_ACTUATOR,
-    ActionColumn,
-    AgentWiring,
-    Feature,
-    ObservationLayout,
-    WiringSpec,
-)
+from mat_runtime.wiring_schema import NO_ACTUATOR, AgentWiring, WiringSpec
 from mat_sdk.envs.core.base import (
     SETTLE_SECONDS,
     ArrayTeam,
@@ -44,16 +33,10 @@ from mat_sdk.envs.core.base import (
     render_failed,
 )
 from mat_sdk.envs.core.faults import Fault, faults_of
-from mat_sdk.envs.mujoco.actuation import target_map, weaken
-from mat_sdk.envs.mujoco.decomposition import (
-    actuator_joints,
-    decompose,
-    joint_dof_indices,
-    joint_qpos_indices,
-    root_feature_indices,
-    root_joints,
-)
-from mat_sdk.envs.mujoco.features import Signal, robot_signals
+from mat_sdk.envs.mujoco.action_map import ActionMap, actuator_name, resolve_faults
+from mat_sdk.envs.mujoco.actuation import weaken
+from mat_sdk.envs.mujoco.decomposition import decompose
+from mat_sdk.envs.mujoco.observation_map import ObservationMap
 from mat_sdk.envs.mujoco.randomization import Randomization, Randomizer
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -61,11 +44,6 @@ if TYPE_CHECKING:
     from mat_sdk.envs.mujoco.sources import RobotSpec
 
 _FULL_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # includes ctrl and the solver's warmstart
-
-
-def _actuator_name(model, actuator: int) -> str:
-    """An actuator's name, or `#index` for an unnamed one."""
-    return model.actuator(actuator).name or f"#{actuator}"
 
 
 class RobotTeam(ArrayTeam):
@@ -113,7 +91,9 @@ class RobotTeam(ArrayTeam):
         self.team = decompose(self._model, spec.groups, spec.hops if hops is None else hops)
         self.possible_agents = spec.names()
         self.faults = faults_of(faults)
-        zeroed, removed, weakened = self._resolve_faults(self.faults)
+        zeroed, removed, weakened = resolve_faults(
+            self._model, self.team, self.possible_agents, self.faults, spec.env_id
+        )
         weaken(self._model, weakened)
         self.active = [i for i in range(len(self.team)) if i not in removed]
         self.agents = [self.possible_agents[i] for i in self.active]
@@ -125,13 +105,25 @@ class RobotTeam(ArrayTeam):
             spec.fast_reward if task is None and spec.fast_reward else self._task.get_reward
         )
         self.reward_terms = tuple(getattr(self._task, "reward_terms", ()))
-        self._build_action_map(zeroed)
-        self._build_observation_map()
+        scale = getattr(self._task, "robot_scale", None)  # from_mjcf tasks with terms
+        self.actions = ActionMap(
+            self._model, self.team, self.active, self.action_width, zeroed, spec.actions,
+            getattr(self._task, "start_qpos", self._model.qpos0),
+            None if scale is None else scale.torque,
+        )  # fmt: skip
+        # every driven actuator's action, as the task's terms and observations see it
+        self._record = getattr(self._task, "record_action", None)
+        self._end_step = getattr(self._task, "end_step", None)
+        self.observations = ObservationMap(
+            spec, self.physics, self._task, self.team, self.active, self.possible_agents,
+            self.agent_id, self._positions, self.actions,
+        )  # fmt: skip
+        self.obs_dim, self.state_dim = self.observations.obs_dim, self.observations.state_dim
         given = spec.randomize if randomize is None else randomize
         self.randomization = Randomization.parse(given)
         self._randomizer = None
         if self.randomization is not None:
-            sources = [(signal.name, signal.size) for signal in self._signals]
+            sources = [(signal.name, signal.size) for signal in self.observations.signals]
             self._randomizer = Randomizer(
                 self.randomization, self._model, self._data, self.control_timestep, sources,
                 spec.env_id,
@@ -150,233 +142,10 @@ class RobotTeam(ArrayTeam):
         """MuJoCo names of the joints an agent drives."""
         return [self._model.joint(j).name for j in self.team[agent].joints]
 
-    def _resolve_faults(
-        self, faults: tuple[Fault, ...]
-    ) -> tuple[set[int], set[int], dict[int, float]]:
-        """Zeroed actuators, removed agents and weak actuators (with the force each keeps)."""
-        zeroed: set[int] = set()
-        removed: set[int] = set()
-        weakened: dict[int, float] = {}
-        for fault in faults:
-            agents, actuators = self._fault_target(fault.target)
-            if fault.kind == "remove":
-                removed.update(agents)
-            elif fault.kind == "zero":
-                zeroed.update(actuators)
-            else:
-                weakened.update(dict.fromkeys(actuators, fault.strength))
-        if len(removed) == len(self.team):
-            raise ValueError("faults remove every agent; at least one must stay")
-        for agent in removed:
-            zeroed.update(self.team[agent].actuators)
-        return zeroed, removed, weakened
-
-    def _fault_target(self, name: str) -> tuple[list[int], list[int]]:
-        if name in self.possible_agents:
-            agent = self.possible_agents.index(name)
-            return [agent], list(self.team[agent].actuators)
-        joint = mujoco.mj_name2id(self._model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        hits = [
-            (i, a)
-            for i, member in enumerate(self.team)
-            for a in member.actuators
-            if joint >= 0 and joint in actuator_joints(self._model, a)
-        ]
-        if not hits:
-            joints = [n for i in range(len(self.team)) for n in self.joint_names(i)]
-            raise ValueError(
-                f"fault names {name!r}, which is neither an agent nor an actuated joint of "
-                f"{self.spec.env_id}; agents: {', '.join(self.possible_agents)}; "
-                f"joints: {', '.join(joints)}"
-            )
-        return sorted({i for i, _ in hits}), [a for _, a in hits]
-
-    def _build_action_map(self, zeroed: set[int]) -> None:
-        """Which entries of the `[n, action_width]` action array drive which actuator."""
-        driven, full, actuators = [], [], []
-        for row, agent in enumerate(self.active):
-            for col, actuator in enumerate(self.team[agent].actuators):
-                if actuator not in zeroed:
-                    driven.append(row * self.action_width + col)
-                    full.append(agent * self.action_width + col)
-                    actuators.append(actuator)
-        self._action_driven = np.array(driven, dtype=np.intp)
-        self._action_driven_full = np.array(full, dtype=np.intp)  # in [team agents, width]
-        self._ctrl_index = np.array(actuators, dtype=np.intp)
-        low, high = self._model.actuator_ctrlrange[self._ctrl_index].T
-        self._ctrl_low, self._ctrl_half = low, (high - low) / 2
-        self._targets = None  # actions as joint targets around the start pose
-        if self.spec.actions is not None:
-            start = getattr(self._task, "start_qpos", self._model.qpos0)
-            scale = getattr(self._task, "robot_scale", None)  # from_mjcf tasks with terms
-            moment = None if scale is None else scale.torque
-            self._targets = target_map(
-                self._model, self._ctrl_index, start, self.spec.actions, moment
-            )
-        # every driven actuator's action, as the task's terms and observations see it
-        self._record = getattr(self._task, "record_action", None)
-        self._end_step = getattr(self._task, "end_step", None)
-
-    def _build_observation_map(self) -> None:
-        """One index table that gathers every observation from the concatenated signals and
-        constants (0, 1, the agents' positions), less `offset` (the start pose)."""
-        model = self._model
-        if self.spec.observation is None:
-            signals, joint_pos, joint_vel, shared = self._joint_state_signals()
-            kinds = ("qpos", "qvel")
-        else:
-            signals, joint_pos, joint_vel, shared = self._hardware_signals()
-            kinds = ("pos", "vel")
-        starts = np.cumsum([0, *(signal.size for signal in signals)])
-        at = {signal.name: int(start) for signal, start in zip(signals, starts, strict=False)}
-        end = int(starts[-1])
-        zero, one = end, end + 1
-        constants = [0.0, 1.0]  # then each agent's position features, if any
-
-        def positions(joints):
-            return [at[joint_pos[0]] + i for j in joints for i in joint_pos[1](j)]
-
-        def velocities(joints):
-            return [at[joint_vel[0]] + i for j in joints for i in joint_vel[1](j)]
-
-        parts = {
-            f"{field}.{kind}": [getter(getattr(member, field)) for member in self.team]
-            for field in ("joints", "upstream", "downstream")
-            for kind, getter in zip(kinds, (positions, velocities), strict=True)
-        }
-        widths = {name: max(len(entries) for entries in block) for name, block in parts.items()}
-        shared_entries = {
-            name: [at[signal] + i for i in index] for name, (signal, index) in shared.items()
-        }
-        widths |= {name: len(entries) for name, entries in shared_entries.items()}
-        own = next((s for s in signals if s.per_agent), None)  # each agent's previous action
-        widths |= {"last_action": self.action_width if own else 0}
-        widths |= {"id": len(self.team) if self.agent_id else 0}
-        widths |= {"position": self._positions.shape[1]}
-        rows = []
-        for agent in self.active:
-            row = []
-            for name, block in parts.items():
-                row += block[agent] + [zero] * (widths[name] - len(block[agent]))
-            for entries in shared_entries.values():
-                row += entries
-            if own:
-                row += [
-                    at[own.name] + agent * self.action_width + k for k in range(self.action_width)
-                ]
-            if self.agent_id:
-                row += [one if i == agent else zero for i in range(len(self.team))]
-            for value in self._positions[agent]:
-                row.append(zero + len(constants))
-                constants.append(float(value))
-            rows.append(row)
-        self._signals = signals
-        self._obs_index = np.array(rows, dtype=np.intp)
-        self.obs_dim = self._obs_index.shape[1]
-        # the name and columns of each feature, in order (every agent's row has the same)
-        columns = np.cumsum([0, *widths.values()])
-        self._features = tuple(
-            Feature(name, int(start), int(start + width))
-            for (name, width), start in zip(widths.items(), columns, strict=False)
-            if width
-        )
-        self._constants = np.array(constants)
-        self._offset = None
-        if self.spec.observation is not None:  # joint positions relative to the start pose
-            self._offset = np.zeros(end + len(constants))
-            self._offset[at["joint_pos"] : at["joint_pos"] + len(self._joints)] = (
-                self._start_of_joints
-            )
-        nq, nv, n_extra = model.nq, model.nv, len(self._extra_features())
-        root_qpos = {int(i) for j in root_joints(model) for i in joint_qpos_indices(model, j)}
-        horizontal = root_qpos - set(root_feature_indices(model)[0].tolist())
-        kept_qpos = [i for i in range(nq) if i not in horizontal]
-        self._state_index = np.array(
-            [*kept_qpos, *range(nq, nq + nv), *range(nq + nv, nq + nv + n_extra)], dtype=np.intp
-        )
-        self.state_dim = len(self._state_index)
-
-    def _joint_state_signals(self):
-        """MuJoCo's raw joint state: signals qpos, qvel and the task's features; the root's
-        height, orientation and velocities shared (unless the spec leaves them out)."""
-        model, data = self._model, self._data
-        extra = len(self._extra_features())
-        signals = [
-            Signal("qpos", model.nq, [], lambda: data.qpos),
-            Signal("qvel", model.nv, [], lambda: data.qvel),
-            Signal("task", extra, [], self._extra_features),
-        ]
-        root_qpos, root_qvel = root_feature_indices(model)
-        shared = {}
-        if self.spec.root_features:
-            shared = {
-                "root.qpos": ("qpos", root_qpos.tolist()),
-                "root.qvel": ("qvel", root_qvel.tolist()),
-            }
-        shared["task"] = ("task", list(range(extra)))
-        joint_pos = ("qpos", lambda j: [int(i) for i in joint_qpos_indices(model, j)])
-        joint_vel = ("qvel", lambda j: [int(i) for i in joint_dof_indices(model, j)])
-        return signals, joint_pos, joint_vel, shared
-
-    def _hardware_signals(self):
-        """What the robot's hardware measures: every non-root joint's position and velocity
-        (encoders), then the `Observation`'s whole-robot signals, then the previous action."""
-        model, data = self._model, self._data
-        # encoders: every hinge and slide but a floating base's (a fixed-base arm's first
-        # joint hangs from the world too, and is measured like the others when it is driven)
-        driven = {j for a in range(model.nu) for j in actuator_joints(model, a)}
-        roots = set(root_joints(model)) - driven
-        self._joints = [j for j in range(model.njnt) if j not in roots and model.jnt_type[j] >= 2]
-        qpos_of = np.array([model.jnt_qposadr[j] for j in self._joints], dtype=np.intp)
-        dof_of = np.array([model.jnt_dofadr[j] for j in self._joints], dtype=np.intp)
-        start = getattr(self._task, "start_qpos", model.qpos0)
-        self._start_of_joints = start[qpos_of]
-        names = [model.joint(j).name for j in self._joints]
-        slot = {joint: k for k, joint in enumerate(self._joints)}
-        signals = [
-            Signal("joint_pos", len(names), names, lambda: data.qpos[qpos_of]),
-            Signal("joint_vel", len(names), names, lambda: data.qvel[dof_of]),
-        ]
-        command = getattr(self._task, "command", np.zeros(0))
-        commands = getattr(getattr(self._task, "recipe", None), "commands", None)
-        robot = robot_signals(
-            self.spec.observation, self.physics, lambda: command, commands.names if commands else ()
-        )
-        signals += robot
-        shared = {signal.name: (signal.name, list(range(signal.size))) for signal in robot}
-        if self.spec.observation.last_action:
-            signals.append(self._last_action_signal())
-        joint = ("joint_pos", lambda j: [slot[j]] if j in slot else [])  # no encoder: left out
-        velocity = ("joint_vel", lambda j: [slot[j]] if j in slot else [])
-        return signals, joint, velocity, shared
-
-    def _last_action_signal(self) -> Signal:
-        """Every agent's previous action, `[team agents x action width]` (a removed agent's
-        and padding stay 0): each agent observes its own row."""
-        width, rows = self.action_width, len(self.team)
-        last = np.zeros(rows * width)
-        source = self._action_driven_full  # driven entries of the [team agents, width] array
-        task, actuators = self._task, self._ctrl_index
-
-        def read():
-            last[source] = task.action[actuators]
-            return last
-
-        if not hasattr(task, "action"):
-            raise ValueError(
-                f"{self.env_id}: last_action needs a task that records actions (from_mjcf's)"
-            )
-        labels = [f"{agent}.{k}" for agent in self.possible_agents for k in range(width)]
-        return Signal("last_action", rows * width, labels, read, per_agent=True)
-
-    def _extra_features(self) -> np.ndarray:
-        features = self.spec.task_features
-        return np.zeros(0) if features is None else features(self.physics)
-
     def task_features(self) -> np.ndarray:
         """The task's features now (e.g. a target's position), the `task` part of the
         observation source in `wiring()`; empty for tasks without them."""
-        return np.asarray(self._extra_features(), dtype=np.float64)
+        return np.asarray(self.observations.task_features(), dtype=np.float64)
 
     def wiring(self) -> WiringSpec:
         """How the policy's arrays map onto this robot, for a controller on the hardware
@@ -396,76 +165,27 @@ class RobotTeam(ArrayTeam):
           [kp, kd] (what a robot's motor driver must be given to act as the model did);
         - the velocity commands' trained ranges, for a robot that takes them;
         - the control timestep, and where the observation normaliser is."""
-        model = self._model
-        drives = dict(zip(self._action_driven.tolist(), range(len(self._ctrl_index)), strict=True))
-        agents = []
-        for row, agent in enumerate(self.active):
-            action = []
-            for col in range(self.action_width):
-                k = drives.get(row * self.action_width + col)
-                action.append(NO_ACTUATOR if k is None else self._action_column(k))
-            agents.append(
-                AgentWiring(
-                    name=self.agents[row],
-                    actuators=tuple(_actuator_name(model, a) for a in self.team[agent].actuators),
-                    joints=tuple(self.joint_names(agent)),
-                    action=tuple(action),
-                )
+        columns = self.actions.columns(len(self.active))
+        agents = tuple(
+            AgentWiring(
+                name=self.agents[row],
+                actuators=tuple(actuator_name(self._model, a) for a in self.team[agent].actuators),
+                joints=tuple(self.joint_names(agent)),
+                action=tuple(NO_ACTUATOR if c is None else c for c in columns[row]),
             )
-        source, start = {}, 0
-        for signal in self._signals:
-            source[signal.name] = (start, start + signal.size)
-            start += signal.size
-        source["constants"] = (start, start + len(self._constants))
-        with_offset = self._offset is not None
-        observation = ObservationLayout(
-            source=source,
-            constants=tuple(self._constants.tolist()),
-            index=tuple(tuple(row) for row in self._obs_index.tolist()),
-            features=self._features,
-            signals={s.name: tuple(s.labels) for s in self._signals} if with_offset else {},
-            offset=tuple(self._offset.tolist()) if with_offset else None,
+            for row, agent in enumerate(self.active)
         )
         commands = getattr(getattr(self._task, "recipe", None), "commands", None)
         return WiringSpec(
             control_timestep=float(self.control_timestep),
-            physics_timestep=float(model.opt.timestep),
-            agents=tuple(agents),
-            observation=observation,
+            physics_timestep=float(self._model.opt.timestep),
+            agents=agents,
+            observation=self.observations.layout(),
             # the ranges the policy was trained on, for a controller
             commands={}
             if commands is None
             else {name: tuple(getattr(commands, name)) for name in commands.names},
         )
-
-    def _action_column(self, k: int) -> ActionColumn:
-        """The wiring of driven actuator k (`wiring`)."""
-        model, ctrl = self._model, int(self._ctrl_index[k])
-        named = {"actuator": _actuator_name(model, ctrl), "ctrl": ctrl}
-        if self._targets is None:
-            half = float(self._ctrl_half[k])
-            return ActionColumn(scale=half, offset=float(self._ctrl_low[k]) + half, **named)
-        targets = self._targets
-        joint = int(model.actuator_trnid[ctrl, 0])
-        named |= {"scale": float(targets.scale[k]), "offset": float(targets.offset[k])}
-        named["target"] = model.joint(joint).name
-        if targets.pd:
-            torque = (float(targets.low[k]), float(targets.high[k]))
-            return ActionColumn(kp=targets.kp, kd=targets.kd, torque=torque, **named)
-        low, high = (
-            float(v) if np.isfinite(v) else None for v in (targets.low[k], targets.high[k])
-        )
-        servo = None
-        if model.actuator_biastype[ctrl] == mujoco.mjtBias.mjBIAS_AFFINE:
-            # a position servo: the gains the robot's motor driver must be given for it
-            servo = (
-                float(model.actuator_gainprm[ctrl, 0]),
-                float(-model.actuator_biasprm[ctrl, 2]),
-            )
-        joint_range = None
-        if model.jnt_limited[joint]:
-            joint_range = (float(model.jnt_range[joint, 0]), float(model.jnt_range[joint, 1]))
-        return ActionColumn(low=low, high=high, servo=servo, range=joint_range, **named)
 
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None) -> np.ndarray:
@@ -519,28 +239,27 @@ class RobotTeam(ArrayTeam):
         tracked[3] += 1.0
 
     def advance(self, actions: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        flat = actions.reshape(-1)[self._action_driven]  # a copy: clipped in place below
+        actuation = self.actions
+        flat = actions.reshape(-1)[actuation.driven]  # a copy: clipped in place below
         np.minimum(flat, 1.0, out=flat)
         np.maximum(flat, -1.0, out=flat)
         if self._record is not None:
-            self._record(self._ctrl_index, flat)
+            self._record(actuation.ctrl_index, flat)
         if self._randomizer is not None:  # a push now; the motors get a late action
             self._randomizer.push(self._task._random)
             flat = self._randomizer.delay(flat)
         time_before = self._data.time
-        if self._targets is None:
-            self._data.ctrl[self._ctrl_index] = self._ctrl_low + (flat + 1.0) * self._ctrl_half
+        ctrl, targets = actuation.ctrl_index, actuation.targets
+        if targets is None:
+            self._data.ctrl[ctrl] = actuation.ctrl_low + (flat + 1.0) * actuation.ctrl_half
             self._physics_step()
-        elif not self._targets.pd:
-            targets = self._targets.targets(flat)
-            self._data.ctrl[self._ctrl_index] = np.clip(
-                targets, self._targets.low, self._targets.high
-            )
+        elif not targets.pd:
+            self._data.ctrl[ctrl] = np.clip(targets.targets(flat), targets.low, targets.high)
             self._physics_step()
         else:  # a PD layer at the physics rate turns the targets into torques
-            targets = self._targets.targets(flat)
+            goal = targets.targets(flat)
             for substep in range(self.substeps):
-                self._data.ctrl[self._ctrl_index] = self._targets.torques(self._data, targets)
+                self._data.ctrl[ctrl] = targets.torques(self._data, goal)
                 self._physics_step(1, first=substep == 0, last=substep == self.substeps - 1)
         self._steps += 1
         if self._base is not None and self._steps > self._settle_steps:
@@ -571,23 +290,16 @@ class RobotTeam(ArrayTeam):
 
     def observe(self) -> np.ndarray:
         """The observation of the state now, `[n_agents, obs_dim]` (without sensor noise)."""
-        return self._observation(self._source())
-
-    def _source(self) -> np.ndarray:
-        source = np.concatenate([signal.read() for signal in self._signals] + [self._constants])
-        if self._offset is not None:
-            source -= self._offset
-        return source
-
-    def _observation(self, source: np.ndarray) -> np.ndarray:
-        return source[self._obs_index].astype(np.float32)
+        observations = self.observations
+        return observations.observation(observations.source())
 
     def _sensed(self) -> np.ndarray:
         """The observation as the agents sense it: with this step's noise, when randomized."""
-        source = self._source()
+        observations = self.observations
+        source = observations.source()
         if self._randomizer is not None:
             self._randomizer.noise(source, self._task._random)
-        return self._observation(source)
+        return observations.observation(source)
 
     def get_state(self) -> dict:
         """Everything that decides the rest of the episode, to resume it exactly."""
@@ -618,8 +330,7 @@ class RobotTeam(ArrayTeam):
 
     def state(self) -> np.ndarray:
         """The global state: all joint positions (less horizontal root position) and velocities."""
-        source = np.concatenate((self._data.qpos, self._data.qvel, self._extra_features()))
-        return source[self._state_index].astype(np.float32)
+        return self.observations.state()
 
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
         """An RGB frame `[height, width, 3]`; needs a GL backend (set MUJOCO_GL=egl or osmesa).
