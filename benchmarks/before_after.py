@@ -32,7 +32,10 @@ for _ in range(3000):
     start = time.perf_counter(); policy.act(obs); times.append(time.perf_counter() - start)
 result = {"act_us": float(np.median(times)) * 1e6}
 if sys.argv[1] == "train":
-    from mat_sdk.training.trainer import Trainer
+    try:
+        from mat_sdk.training.trainer import Trainer
+    except ImportError:  # a checkout from before the folders
+        from mat_sdk.trainer import Trainer
     rows = []
     with Trainer("cheetah-6x1", "mat", num_envs=40, rollout_length=100) as trainer:
         trainer.learn(12_000, progress_bar=False, callback=lambda t, m: rows.append(m))
