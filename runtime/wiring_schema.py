@@ -252,6 +252,14 @@ def check(wiring: Any, obs_dim: int, action_size: int, where: str) -> None:
             f"must be in [{CONTROL_TIMESTEP[0]:g}, {CONTROL_TIMESTEP[1]:g}] s, "
             f"got {wiring['control_timestep']!r}",
         )
+    physics = wiring.get("physics_timestep")
+    if physics is not None:
+        need("physics_timestep", real(physics))
+        if not CONTROL_TIMESTEP[0] <= physics <= wiring["control_timestep"]:
+            need(
+                "physics_timestep",
+                f"must be in [{CONTROL_TIMESTEP[0]:g} s, the control timestep], got {physics!r}",
+            )
     need("normalizer", string(wiring.get("normalizer")))
     agents = wiring.get("agents")
     if not isinstance(agents, list) or not agents:

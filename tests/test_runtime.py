@@ -780,6 +780,13 @@ def test_manifests_that_lie_are_refused_naming_the_field(bundles, tmp_path):
         "tiny timestep": (
             set_field("wiring", "control_timestep", 1e-300), r"wiring\.control_timestep must be in"
         ),
+        "physics timestep": (
+            set_field("wiring", "physics_timestep", "fast"),
+            r"wiring\.physics_timestep must be a finite number",
+        ),
+        "physics slower than control": (
+            set_field("wiring", "physics_timestep", 1.0), r"wiring\.physics_timestep must be in"
+        ),
         "ctrl": (
             set_field("wiring", "agents", 0, "action", 0, "ctrl", 10**9),
             r"wiring\.agents\[0\]\.action\[0\]\.ctrl must be below",
