@@ -79,6 +79,7 @@ def test_a_ray_worker_killed_mid_rollout_is_replaced_and_no_update_is_lost(tmp_p
         assert trainer.progress.updates == 3 and trainer.progress.steps == 600
 
 
+@pytest.mark.slow  # two minutes on 2 cores: a Ray cluster started, seeds killed and retried
 def test_a_seed_set_on_ray_retries_killed_seeds_from_their_checkpoints(tmp_path, monkeypatch):
     """Seed 0's run and seed 1's Ray worker are killed at a known step of the third update;
     Ray retries both tasks, they resume from their checkpoints, and seed 1 ends equal to a
