@@ -215,6 +215,11 @@ def main() -> None:
             f"command {args.command}: falls {state['falls']}; {travelled:.2f} m forward in the "
             f"last {robot.data.time:.1f} s, its stand-up included ({speed:.2f} m/s)"
         )
+        vx, vy, yaw_rate = sums[0] / max(counts[0], 1)
+        print(
+            f"in its heading's frame, after the policy's first second: vx {vx:+.3f} m/s, "
+            f"vy {vy:+.3f} m/s, yaw rate {yaw_rate:+.3f} rad/s"
+        )
     assert "torch" not in {m for m, module in sys.modules.items() if module}
 
 

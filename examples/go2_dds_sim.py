@@ -85,6 +85,17 @@ class Go2Sim:
         state.tick = round(data.time * 1000) & 0xFFFFFFFF
         return state
 
+    def heading_velocity(self) -> np.ndarray:
+        """The base's (vx, vy) in its heading's frame and its yaw rate, as training measures
+        them (`ArrayTeam.tracking`)."""
+        frame = self.data.xmat[self.base].reshape(3, 3)
+        heading = frame[:2, 0] / max(float(np.linalg.norm(frame[:2, 0])), 1e-9)
+        vx, vy = self.data.qvel[0:2]
+        spin = frame @ self.data.qvel[3:6]  # the free joint's angular velocity, in the world
+        return np.array(
+            [vx * heading[0] + vy * heading[1], vy * heading[0] - vx * heading[1], spin[2]]
+        )
+
     def _foot_forces(self) -> list[int]:
         """Each foot's normal contact force (N), as the foot sensors' raw counts."""
         forces, wrench = [0.0] * len(self.feet), np.zeros(6)
@@ -107,6 +118,10 @@ def main() -> None:
     parser.add_argument("--drop", type=float, default=0.0, help="share of state messages lost")
     parser.add_argument("--push-after", type=float, help="shove the trunk sideways after S s")
     parser.add_argument("--seed", type=int, default=0, help="the message-loss stream")
+    parser.add_argument(
+        "--measure-after", type=float, default=5.0,
+        help="average the base's velocity in its heading's frame from S s on",
+    )  # fmt: skip
     args = parser.parse_args()
 
     sim = Go2Sim(args.model)
@@ -118,7 +133,7 @@ def main() -> None:
     steps = int(args.seconds / period)
     start = time.perf_counter()
     origin = sim.data.xpos[sim.base].copy()
-    late = 0
+    late, velocity, counted = 0, np.zeros(3), 0
     for k in range(steps):
         for message in reader.take(N=64):  # the newest command is the one in force
             if isinstance(message, LowCmd_):  # not a writer's coming or going
@@ -127,6 +142,9 @@ def main() -> None:
         if args.push_after is not None and abs(seconds - args.push_after) < period / 2:
             sim.data.qvel[1] += 1.5  # m/s sideways, at once
         sim.step()
+        if seconds >= args.measure_after:
+            velocity += sim.heading_velocity()
+            counted += 1
         frozen = args.freeze_after is not None and seconds >= args.freeze_after
         if not frozen and random.uniform() >= args.drop:
             nan = args.nan_imu_after is not None and seconds >= args.nan_imu_after
@@ -142,6 +160,12 @@ def main() -> None:
         f"moved {moved[0]:+.2f} m forward, {moved[1]:+.2f} m sideways, and stands "
         f"{sim.data.xpos[sim.base][2]:.2f} m high"
     )
+    if counted:
+        vx, vy, yaw_rate = velocity / counted
+        print(
+            f"from {args.measure_after:g} s on, in its heading's frame: vx {vx:+.3f} m/s, "
+            f"vy {vy:+.3f} m/s, yaw rate {yaw_rate:+.3f} rad/s"
+        )
 
 
 if __name__ == "__main__":
