@@ -64,6 +64,17 @@ JOYSTICK = (
 SETTLE = 1.0  # s after each change of command that the report leaves out
 
 
+def heading_velocity(data, base: int) -> np.ndarray:
+    """The base's (vx, vy) in its heading's frame and its yaw rate: what a velocity command
+    names, from the simulation's state (the frame training reports, `ArrayTeam.tracking`)."""
+    frame = data.xmat[base].reshape(3, 3)
+    yaw = np.arctan2(frame[1, 0], frame[0, 0])
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    vx, vy = data.qvel[0:2]
+    spin = frame @ data.qvel[3:6]  # the free joint's angular velocity, in the world
+    return np.array([cos * vx + sin * vy, -sin * vx + cos * vy, spin[2]])
+
+
 class SimulatedGo2:
     """The hardware's side, simulated: sensors to read, joint targets to write."""
 
@@ -106,14 +117,7 @@ class SimulatedGo2:
         return reading, float(data.time)
 
     def velocity(self) -> np.ndarray:
-        """The base's (vx, vy) in its heading's frame and its yaw rate: what a velocity
-        command names, from the simulation's state."""
-        heading = self.data.xmat[self.base].reshape(3, 3)[:, 0]
-        yaw = np.arctan2(heading[1], heading[0])
-        cos, sin = np.cos(yaw), np.sin(yaw)
-        vx, vy = self.data.qvel[0:2]
-        spin = self.data.xmat[self.base].reshape(3, 3) @ self.data.qvel[3:6]
-        return np.array([cos * vx + sin * vy, -sin * vx + cos * vy, spin[2]])
+        return heading_velocity(self.data, self.base)
 
     def write(self, motors: MotorCommand) -> None:
         """Send each motor (in the encoders' order) its target and gains, as the motor driver

@@ -29,6 +29,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
+from go2_controller import heading_velocity
 
 from mat_runtime.unitree import COMMAND_TOPIC, GO2_JOINTS, LEGS, STATE_TOPIC, LowCmd_, LowState_
 
@@ -85,17 +86,6 @@ class Go2Sim:
         state.tick = round(data.time * 1000) & 0xFFFFFFFF
         return state
 
-    def heading_velocity(self) -> np.ndarray:
-        """The base's (vx, vy) in its heading's frame and its yaw rate, as training measures
-        them (`ArrayTeam.tracking`)."""
-        frame = self.data.xmat[self.base].reshape(3, 3)
-        heading = frame[:2, 0] / max(float(np.linalg.norm(frame[:2, 0])), 1e-9)
-        vx, vy = self.data.qvel[0:2]
-        spin = frame @ self.data.qvel[3:6]  # the free joint's angular velocity, in the world
-        return np.array(
-            [vx * heading[0] + vy * heading[1], vy * heading[0] - vx * heading[1], spin[2]]
-        )
-
     def _foot_forces(self) -> list[int]:
         """Each foot's normal contact force (N), as the foot sensors' raw counts."""
         forces, wrench = [0.0] * len(self.feet), np.zeros(6)
@@ -143,7 +133,7 @@ def main() -> None:
             sim.data.qvel[1] += 1.5  # m/s sideways, at once
         sim.step()
         if seconds >= args.measure_after:
-            velocity += sim.heading_velocity()
+            velocity += heading_velocity(sim.data, sim.base)
             counted += 1
         frozen = args.freeze_after is not None and seconds >= args.freeze_after
         if not frozen and random.uniform() >= args.drop:

@@ -262,19 +262,18 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 30) -> Pa
 def random_team_return(env_id: str, episodes: int = 16, seed: int = 100, **options) -> float:
     """Mean episode return of uniformly random actions (discrete: random available choices),
     one episode per env copy, copy i seeded `seed + i`."""
-    vec = envs.make_vec(env_id, episodes, seed=seed, **options)
-    vec.reset(seed=seed)
     rng = np.random.default_rng(0)
     returns: list[float] = []
-    shape = (episodes, vec.n_agents, vec.action_width)
-    while len(returns) < episodes:
-        if vec.action_type == "discrete":
-            available = vec.available() if vec.masks else np.ones((*shape[:2], vec.action_size))
-            scores = rng.random(available.shape) * available
-            actions = scores.argmax(-1)[..., None].astype(float)
-        else:
-            actions = rng.uniform(-1, 1, shape)
-        _, _, _, _, info = vec.step(actions)
-        returns += info["episode_return"][info["done"]].tolist()
-    vec.close()
+    with envs.make_vec(env_id, episodes, seed=seed, **options) as vec:
+        vec.reset(seed=seed)
+        shape = (episodes, vec.n_agents, vec.action_width)
+        while len(returns) < episodes:
+            if vec.action_type == "discrete":
+                available = vec.available() if vec.masks else np.ones((*shape[:2], vec.action_size))
+                scores = rng.random(available.shape) * available
+                actions = scores.argmax(-1)[..., None].astype(float)
+            else:
+                actions = rng.uniform(-1, 1, shape)
+            _, _, _, _, info = vec.step(actions)
+            returns += info["episode_return"][info["done"]].tolist()
     return float(np.mean(returns))
