@@ -11,7 +11,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from mat_runtime.wiring_schema import ActionColumn
+from mat_runtime.wiring_schema import NO_ACTUATOR, ActionColumn
 from mat_sdk.envs.core.faults import Fault
 from mat_sdk.envs.mujoco.actuation import JointTargets, target_map
 from mat_sdk.envs.mujoco.decomposition import actuator_joints
@@ -102,10 +102,10 @@ class ActionMap:
         if targets is not None:
             self.targets = target_map(model, self.ctrl_index, start_qpos, targets, moment)
 
-    def columns(self, rows: int) -> list[list[ActionColumn | None]]:
-        """Per row of the action array, per column, the wiring of the actuator it drives (None:
-        it drives nothing)."""
-        columns: list[list[ActionColumn | None]] = [[None] * self.width for _ in range(rows)]
+    def columns(self, rows: int) -> list[list[ActionColumn]]:
+        """Per row of the action array, per column, the wiring of the actuator it drives
+        (`NO_ACTUATOR`: it drives nothing)."""
+        columns = [[NO_ACTUATOR] * self.width for _ in range(rows)]
         for k, entry in enumerate(self.driven.tolist()):
             columns[entry // self.width][entry % self.width] = self._column(k)
         return columns

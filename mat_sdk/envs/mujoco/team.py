@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from mat_runtime.wiring_schema import NO_ACTUATOR, AgentWiring, WiringSpec
+from mat_runtime.wiring_schema import AgentWiring, WiringSpec
 from mat_sdk.envs.core.base import (
     SETTLE_SECONDS,
     ArrayTeam,
@@ -171,7 +171,7 @@ class RobotTeam(ArrayTeam):
                 name=self.agents[row],
                 actuators=tuple(actuator_name(self._model, a) for a in self.team[agent].actuators),
                 joints=tuple(self.joint_names(agent)),
-                action=tuple(NO_ACTUATOR if c is None else c for c in columns[row]),
+                action=tuple(columns[row]),
             )
             for row, agent in enumerate(self.active)
         )
