@@ -146,6 +146,28 @@ def test_terms_measure_what_they_name():
         terms.VelocityCommand(vy="01")  # not the range (0.0, 1.0)
 
 
+def test_tracking_over_standing_pays_a_standing_robot_nothing_at_any_command():
+    """The plain kernel pays standing still exp(-command^2 / sigma); `over_standing` pays
+    what tracking gains over that: 0 for standing, 1 - exp(-command^2 / sigma) for exact."""
+    team = _team(seed=0, command=[0.4, 0.0, -0.6])
+    team.reset(seed=0)
+    step = team._task._step
+    still_v, still_yaw = np.exp(-0.16 / 0.25), np.exp(-0.36 / 0.25)
+    assert terms.TrackVelocity().value(step) == pytest.approx(still_v, abs=1e-3)
+    assert terms.TrackVelocity(over_standing=True).value(step) == pytest.approx(0.0, abs=1e-3)
+    assert terms.TrackYawRate().value(step) == pytest.approx(still_yaw, abs=1e-3)
+    assert terms.TrackYawRate(over_standing=True).value(step) == pytest.approx(0.0, abs=1e-3)
+    data = team.physics.data.ptr
+    data.qvel[0], data.qvel[5] = 0.4, -0.6  # the base moves as told (it starts level)
+    team.physics.forward()
+    assert terms.TrackVelocity(over_standing=True).value(step) == pytest.approx(
+        1 - still_v, abs=2e-2
+    )
+    assert terms.TrackYawRate(over_standing=True).value(step) == pytest.approx(
+        1 - still_yaw, abs=2e-2
+    )
+
+
 def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):
     options = {**TINY, "num_envs": 2, "rollout_length": 20}
     with Trainer("go2:walk", out_dir=tmp_path / "a", **options) as trainer:

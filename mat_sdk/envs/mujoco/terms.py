@@ -207,9 +207,16 @@ class ForwardVelocity(Term):
 @dataclass(frozen=True)
 class TrackVelocity(Term):
     """How closely the base's horizontal velocity (its frame) follows the command's vx, vy:
-    exp(-error^2 / sigma), 1 when exact."""
+    exp(-error^2 / sigma), 1 when exact.
+
+    With `over_standing`, what tracking gains over standing still: the same kernel minus its
+    value at zero velocity, exp(-command^2 / sigma). Standing then earns 0 at any command
+    (negative at a zero command if the robot moves), where the plain kernel pays it up to 1
+    for small commands: under a joystick's commands, most of them small, that share is what
+    makes standing a policy's first optimum."""
 
     sigma: float = 0.25
+    over_standing: bool = False
     needs_commands = True
 
     def __post_init__(self):
@@ -217,15 +224,18 @@ class TrackVelocity(Term):
         self._positive("sigma")
 
     def value(self, step: Step) -> float:
-        error = step.trunk.velocity(step.data)[:2] - step.command[:2]
-        return float(np.exp(-(error @ error) / self.sigma))
+        command = step.command[:2]
+        error = step.trunk.velocity(step.data)[:2] - command
+        return _tracking(error @ error, command @ command, self.sigma, self.over_standing)
 
 
 @dataclass(frozen=True)
 class TrackYawRate(Term):
-    """How closely the base's yaw rate follows the command's: exp(-error^2 / sigma)."""
+    """How closely the base's yaw rate follows the command's: exp(-error^2 / sigma); with
+    `over_standing`, minus what standing still earns (`TrackVelocity`)."""
 
     sigma: float = 0.25
+    over_standing: bool = False
     needs_commands = True
 
     def __post_init__(self):
@@ -233,8 +243,14 @@ class TrackYawRate(Term):
         self._positive("sigma")
 
     def value(self, step: Step) -> float:
-        error = step.trunk.angular_velocity(step.data)[2] - step.command[2]
-        return float(np.exp(-(error**2) / self.sigma))
+        command = float(step.command[2])
+        error = float(step.trunk.angular_velocity(step.data)[2]) - command
+        return _tracking(error**2, command**2, self.sigma, self.over_standing)
+
+
+def _tracking(error_squared, command_squared, sigma: float, over_standing: bool) -> float:
+    kernel = math.exp(-float(error_squared) / sigma)
+    return kernel - math.exp(-float(command_squared) / sigma) if over_standing else kernel
 
 
 @dataclass(frozen=True)
