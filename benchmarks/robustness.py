@@ -22,6 +22,7 @@ import numpy as np
 
 from mat_sdk.cli.common import parse_settings
 from mat_sdk.common.files import write_text_atomic
+from mat_sdk.envs import Trusted
 from mat_sdk.evaluation import robustness
 from mat_sdk.evaluation.episodes import CheckpointPolicy, Episodes
 
@@ -67,7 +68,7 @@ def main(groups, sweeps, episodes, env_options, out: Path) -> None:
                 todo = [v for v in values if v not in done]
                 if todo:
                     # the user named these files
-                    loaded = CheckpointPolicy.from_checkpoint(path, trust_env_code=True)
+                    loaded = CheckpointPolicy.from_checkpoint(Trusted(path))
                     for value, result in robustness.sweep(
                         loaded, factor, todo, episodes, **options
                     ):

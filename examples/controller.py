@@ -25,7 +25,7 @@ sys.modules["torch"] = None  # prove the point: importing torch now raises Impor
 import numpy as np
 
 from mat_runtime import Policy, loop
-from mat_sdk.envs import UntrustedEnvError, check_trusted, make_team
+from mat_sdk.envs import Trusted, UntrustedEnvError, check_trusted, make_team
 
 
 def main() -> None:
@@ -71,12 +71,15 @@ def main() -> None:
     faults = dict(f.split("=", 1) for f in args.fault)
     if args.env is None:  # the trained robot: its faults (unless --fault) and env options
         try:  # an id read from the bundle runs no code unless trusted
-            check_trusted([policy.env_id], args.trust_env_code, str(policy.path / "manifest.json"))
+            manifest = policy.path / "manifest.json"
+            check_trusted([policy.env_id], Trusted(manifest) if args.trust_env_code else manifest)
         except UntrustedEnvError as error:
             parser.exit(2, f"{error}\n")
-        team = make_team(policy.env_id, faults or policy.env_faults, **policy.env_options)
+        team = make_team(
+            policy.env_id, **{**policy.env_options, "faults": faults or policy.env_faults}
+        )
     else:
-        team = make_team(args.env, faults or None)
+        team = make_team(args.env, faults=faults or None)
 
     obs = np.zeros((team.n_agents, policy.obs_dim), np.float32)  # the sensor buffer
     obs[:] = team.reset(seed=0)

@@ -34,7 +34,9 @@ def main() -> None:
     # 2. Export the adapted policy (checked against torch) and act with the runtime only.
     bundle = export(args.out / "checkpoint.pt", args.out / "onnx", force=True)
     policy = Policy.load(args.out / "onnx")
-    team = make_team(policy.env_id, policy.env_faults, **policy.env_options)  # the changed robot
+    team = make_team(
+        policy.env_id, faults=policy.env_faults, **policy.env_options
+    )  # the changed robot
     obs, total, done = team.reset(seed=0), 0.0, False
     while not done:
         obs, reward, terminated, truncated = team.step(policy.act(obs))

@@ -21,7 +21,7 @@ import re
 import numpy as np
 
 from mat_runtime import Policy
-from mat_sdk.envs import UntrustedEnvError, check_trusted, make_team
+from mat_sdk.envs import Trusted, UntrustedEnvError, check_trusted, make_team
 
 
 def run_episode(team, choose, seed: int) -> float:
@@ -57,7 +57,8 @@ def main() -> None:
 
     policy = Policy.load(args.bundle)  # once: one ONNX Runtime session serves every count below
     try:  # an id read from the bundle runs no code unless trusted
-        check_trusted([policy.env_id], args.trust_env_code, str(policy.path / "manifest.json"))
+        manifest = policy.path / "manifest.json"
+        check_trusted([policy.env_id], Trusted(manifest) if args.trust_env_code else manifest)
     except UntrustedEnvError as error:
         parser.exit(2, f"{error}\n")
     rng = np.random.default_rng(0)

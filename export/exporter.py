@@ -49,11 +49,10 @@ OPSET = 20  # encoder.onnx and decoder_step.onnx; decode*.onnx: DECODE_OPSET (24
 
 
 def export(
-    checkpoint_path: str | Path,
+    checkpoint_path: str | os.PathLike,
     out_dir: str | Path,
     force: bool = False,
     agent_counts=AGENT_COUNTS,
-    trust_env_code: bool = False,
     engines: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Write the bundle and return its manifest.
@@ -62,17 +61,18 @@ def export(
     `decode_n{N}.onnx`: the control step written out for the trained count N (no loop),
     which the runtime uses when it is given exactly N agents. The exporter builds the env
     the checkpoint records (its wiring goes into the manifest); a `module:function` env id is
-    imported only with `trust_env_code=True`. `engines=("openvino",)` also runs every graph
-    in OpenVINO against ONNX Runtime (`engines.openvino_parity`; the manifest's
-    `parity.openvino`).
+    imported only for a checkpoint given as `envs.Trusted(path)`. `engines=("openvino",)`
+    also runs every graph in OpenVINO against ONNX Runtime (`engines.openvino_parity`; the
+    manifest's `parity.openvino`).
     """
     unknown = sorted(set(engines) - set(ENGINES))
     if unknown:
         raise ValueError(f"engines: {unknown} unknown; valid: {', '.join(ENGINES)}")
-    out_dir, checkpoint_path = Path(out_dir), checkpoint.locate(checkpoint_path)  # or zoo:NAME
+    given, out_dir = checkpoint_path, Path(out_dir)
+    checkpoint_path = checkpoint.locate(checkpoint_path)  # or zoo:NAME
     check_target(out_dir, force, checkpoint_path)
     payload = checkpoint.load(checkpoint_path)
-    envs.check_trusted([checkpoint.env_id(payload)], trust_env_code, str(checkpoint_path))
+    envs.check_trusted([checkpoint.env_id(payload)], envs.trusted_as(checkpoint_path, given))
     built = staging(out_dir)  # before the work: an unwritable target fails in a moment
     try:
         with files.writing(out_dir):
@@ -152,7 +152,7 @@ def _check_env(payload: dict, cfg: ModelConfig):
     trained = checkpoint.recorded_config(payload).env
     env_id = trained.id
     try:
-        team = envs.make_team(env_id, trained.faults, **trained.options)
+        team = envs.make_team(env_id, **trained.team_options)
     except (ValueError, TypeError) as error:
         raise ExportError(
             f"the checkpoint was trained on env {env_id!r}, which cannot be made here ({error}); "

@@ -62,14 +62,13 @@ def add(
     command: str,
     episodes: int = 20,
     force: bool = False,
-    trust_env_code: bool = False,
 ) -> dict[str, Any]:
     """Copy `run`'s checkpoint into the zoo as `name`, export it, evaluate it, write its card.
 
     Everything is built in a directory beside the zoo's models and moved into place at the
     end, so a failure leaves the zoo as it was; a model of that name is replaced only with
     `force`. A `module:function` env id that the checkpoint records is imported (to export
-    and evaluate it) only with `trust_env_code=True`."""
+    and evaluate it) only for a run given as `envs.Trusted(run)`."""
     if not isinstance(name, str) or not NAME.fullmatch(name) or ".." in name:
         raise ValueError(
             f"zoo name {name!r}: use letters, digits, '.', '_' and '-' (starting with a letter "
@@ -77,11 +76,11 @@ def add(
         )
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
-    source = run / "checkpoint.pt" if run.is_dir() else run
+    source = Path(run) / "checkpoint.pt" if Path(run).is_dir() else Path(run)
     payload = checkpoint.load(source)
     train = checkpoint.recorded_config(payload)
     env_id = train.env.id
-    envs.check_trusted([env_id], trust_env_code, str(source))
+    envs.check_trusted([env_id], envs.trusted_as(source, run))
     target = zoo_dir() / name
     if target.exists() and not force:
         raise FileExistsError(
@@ -93,9 +92,9 @@ def add(
     try:
         with files.writing(target):
             shutil.copyfile(source, staging / "checkpoint.pt")
-        export(staging / "checkpoint.pt", staging / "onnx", trust_env_code=trust_env_code)
-        copied = staging / "checkpoint.pt"
-        loaded = CheckpointPolicy.from_checkpoint(copied, trust_env_code=trust_env_code)
+        copied = envs.trusted_as(staging / "checkpoint.pt", run)
+        export(copied, staging / "onnx")
+        loaded = CheckpointPolicy.from_checkpoint(copied)
         returns = evaluate(loaded, episodes, seed=EVALUATION_SEED)
         options = dict(train.env.options)
         random = random_team_return(env_id, episodes, seed=EVALUATION_SEED, **options)

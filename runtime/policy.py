@@ -104,7 +104,8 @@ class Policy:
         action = manifest["action"]
         self.algo: str = manifest["algo"]
         self.env_id: str | None = manifest.get("env_id")
-        # the robot it was trained on: `mat_sdk.envs.make_team(env_id, env_faults, **env_options)`
+        # the robot it was trained on:
+        # `mat_sdk.envs.make_team(env_id, faults=env_faults, **env_options)`
         self.env_faults: dict[str, str] = manifest.get("env_faults", {})
         self.env_options: dict[str, Any] = manifest.get("env_options", {})
         # the domain randomization it was trained under (`mat_sdk.envs.Randomization`), or None

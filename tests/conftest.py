@@ -16,6 +16,7 @@ def go2_bundle(tmp_path_factory):
     from helpers import TINY
 
     from mat_export import export
+    from mat_sdk.envs import Trusted
     from mat_sdk.training.trainer import Trainer
     from tests.recipes import with_examples
 
@@ -24,5 +25,5 @@ def go2_bundle(tmp_path_factory):
     with Trainer("go2:walk", **{**TINY, "rollout_length": 20}) as trainer:
         trainer.learn(40, progress_bar=False)
         ckpt = trainer.save(root / "go2.pt")
-    export(ckpt, root / "onnx", agent_counts=(1, 4), trust_env_code=True)
+    export(Trusted(ckpt), root / "onnx", agent_counts=(1, 4))
     return root / "onnx"

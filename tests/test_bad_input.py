@@ -122,7 +122,7 @@ def test_an_error_in_the_users_own_function_names_it(tmp_path):
 def test_fault_names_are_checked_before_mujoco_sees_them(faults, message):
     """A None name crashed MuJoCo's name lookup (a segfault): refused before any lookup."""
     with pytest.raises(ValueError, match=message):
-        envs.make_team("cheetah-6x1", faults)
+        envs.make_team("cheetah-6x1", faults=faults)
 
 
 @pytest.mark.parametrize(
@@ -473,6 +473,6 @@ def test_faults_are_values_parsed_once_and_their_mapping_form_loads_the_same():
         ValueError, match="'bfoot': a fault is NAME=zero, NAME=remove or NAME=weak:S"
     ):
         Fault.parse("bfoot")
-    team = envs.make_team("cheetah-6x1", [Fault.remove("agent_2")])
-    same = envs.make_team("cheetah-6x1", {"agent_2": "remove"})
+    team = envs.make_team("cheetah-6x1", faults=[Fault.remove("agent_2")])
+    same = envs.make_team("cheetah-6x1", faults={"agent_2": "remove"})
     assert team.faults == same.faults == (Fault.remove("agent_2"),) and team.n_agents == 5

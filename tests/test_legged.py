@@ -14,7 +14,7 @@ import pytest
 from helpers import TINY
 
 from mat_sdk import envs
-from mat_sdk.envs import terms
+from mat_sdk.envs import Trusted, terms
 from mat_sdk.envs.tasks.legged import JOYSTICK, WALK
 from mat_sdk.training.runs import RunRequest, with_task_recipe
 from mat_sdk.training.trainer import Trainer
@@ -207,7 +207,7 @@ def test_mat_eval_breaks_the_reward_down_by_term(tmp_path):
 
     with Trainer("quadrupeds:a1", **TINY) as trainer:
         path = trainer.save(tmp_path / "a1.pt")
-    loaded = CheckpointPolicy.from_checkpoint(path, trust_env_code=True)
+    loaded = CheckpointPolicy.from_checkpoint(Trusted(path))
     episodes = evaluate_episodes(loaded, 2, episode_limit=30)
     assert set(episodes.terms) == {*(t.name for t in WALK.reward), "floor"}
     steps = sum(episodes.lengths)

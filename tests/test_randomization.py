@@ -15,7 +15,7 @@ from pettingzoo.test import parallel_api_test
 
 from mat_sdk import envs
 from mat_sdk.cli import main
-from mat_sdk.envs import Randomization
+from mat_sdk.envs import Randomization, Trusted
 from mat_sdk.training.trainer import Trainer
 from tests.recipes import with_examples
 
@@ -159,6 +159,11 @@ def test_a_randomized_episode_resumes_exactly_from_its_state():
     other.set_state(state)
     again = [other.advance(a)[0] for a in actions]
     np.testing.assert_array_equal(np.array(straight), np.array(again))
+    draws = state["randomizer"]["draws"]  # the episode's robot, factor by factor
+    assert {"friction", "mass", "payload", "strength", "damping"} <= set(draws)
+    tampered = {**state, "randomizer": {**state["randomizer"], "draws": {**draws, "gravity": 2}}}
+    with pytest.raises(ValueError, match=r"unknown factor\(s\) \['gravity'\]"):
+        other.set_state(tampered)
 
 
 def test_same_seed_same_randomized_episodes_at_any_worker_count():
@@ -190,7 +195,7 @@ def test_a_randomized_training_run_resumes_exactly_and_records_its_randomization
         trainer.save(tmp_path / "half.pt")
         trainer.learn(80, progress_bar=False)
         straight = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
-    with Trainer.load(tmp_path / "half.pt", out_dir=tmp_path / "b", trust_env_code=True) as again:
+    with Trainer.load(Trusted(tmp_path / "half.pt"), out_dir=tmp_path / "b") as again:
         assert again.config.env.options["randomize"]["latency"] == [0, 2]
         again.learn(80, progress_bar=False)
         for name, value in again.policy.state_dict().items():
@@ -241,7 +246,7 @@ def test_the_checkpoint_and_the_bundle_record_the_randomization(tmp_path):
     with Trainer(GO2, **{**TINY, "env_options": {"randomize": {"payload": [0, 1]}}}) as trainer:
         trainer.learn(20, progress_bar=False)
         checkpoint = trainer.save(tmp_path / "go2.pt")
-    export(checkpoint, tmp_path / "onnx", agent_counts=(4,), trust_env_code=True)
+    export(Trusted(checkpoint), tmp_path / "onnx", agent_counts=(4,))
     recorded = Policy.load(tmp_path / "onnx").randomization
     assert Randomization.parse(recorded) == Randomization(payload=(0.0, 1.0))
     with Trainer(GO2, **TINY) as plain:

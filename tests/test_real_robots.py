@@ -15,7 +15,7 @@ import pytest
 from helpers import TINY
 
 from mat_sdk import envs
-from mat_sdk.envs import terms
+from mat_sdk.envs import Trusted, terms
 from mat_sdk.training.trainer import Trainer
 from tests.recipes import with_examples
 
@@ -175,7 +175,7 @@ def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):
         trainer.save(tmp_path / "half.pt")
         trainer.learn(80, progress_bar=False)
         straight = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
-    with Trainer.load(tmp_path / "half.pt", out_dir=tmp_path / "b", trust_env_code=True) as again:
+    with Trainer.load(Trusted(tmp_path / "half.pt"), out_dir=tmp_path / "b") as again:
         again.learn(80, progress_bar=False)
         for name, value in again.policy.state_dict().items():
             assert np.array_equal(value.numpy(), straight[name].numpy()), name

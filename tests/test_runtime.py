@@ -18,7 +18,7 @@ import mat_runtime
 from mat_export import export
 from mat_runtime import BundleError, InputError, Policy, loop
 from mat_runtime.wiring_schema import WiringSpec
-from mat_sdk.envs import make_team
+from mat_sdk.envs import Trusted, make_team
 from mat_sdk.evaluation.episodes import CheckpointPolicy
 from tests.recipes import with_examples
 
@@ -450,7 +450,7 @@ def test_discrete_agents_with_fewer_choices_never_take_their_padding(tmp_path):
     the runtime masks the speaker's two padding choices, also without an `available` mask."""
     with_examples()
     ckpt = make_checkpoint(tmp_path / "c.pt", "mpe_envs:speaker_listener")
-    manifest = export(ckpt, tmp_path / "bundle", agent_counts=(1, 2), trust_env_code=True)
+    manifest = export(Trusted(ckpt), tmp_path / "bundle", agent_counts=(1, 2))
     assert manifest["agents"]["choices"] == [3, 5]
     policy = Policy.load(tmp_path / "bundle")
     obs = 3.0 * np.random.default_rng(0).standard_normal((500, 2, policy.obs_dim))
@@ -849,9 +849,9 @@ def test_the_bundles_wiring_rebuilds_observations_and_commands_from_raw_state(
     features equal the env's own, and the commands equal the ctrl the env writes."""
     with_examples()
     ckpt = make_checkpoint(tmp_path / "c.pt", env_id, "mat", **options)
-    export(ckpt, tmp_path / "bundle", agent_counts=(1,), trust_env_code=True)  # our own arm
+    export(Trusted(ckpt), tmp_path / "bundle", agent_counts=(1,))  # our own arm
     policy = Policy.load(tmp_path / "bundle")
-    team = make_team(env_id, options.get("faults"), **options.get("env_options", {}))
+    team = make_team(env_id, faults=options.get("faults"), **options.get("env_options", {}))
     wiring, data = policy.wiring, team.physics.data
     assert [a.name for a in wiring.agents] == team.agents
     assert wiring.control_timestep == team.control_timestep

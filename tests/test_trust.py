@@ -1,6 +1,6 @@
 """A downloaded checkpoint, bundle or zoo model never runs code: a `module:function` env id
 read from a file is imported only when the user opts in for that run (`--trust-env-code`,
-`trust_env_code=True`), and an id must name a plain function outside the standard library.
+the path as `envs.Trusted`), and an id must name a plain function outside the standard library.
 
 Each test puts a module `planted.py` in the working directory (the CLI imports typed
 `module:function` ids from there) whose import leaves a marker file: the marker says whether
@@ -20,7 +20,7 @@ import torch
 
 from mat_runtime import Policy
 from mat_sdk import envs
-from mat_sdk.envs import UntrustedEnvError
+from mat_sdk.envs import Trusted, UntrustedEnvError
 from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate
 from mat_sdk.policy import checkpoint
 from mat_sdk.training.trainer import Trainer
@@ -129,7 +129,7 @@ def test_the_python_api_refuses_recorded_ids_without_the_opt_in(planted, monkeyp
             call()
     from mat_sdk.training.finetune import finetune
 
-    with pytest.raises(UntrustedEnvError, match="trust_env_code=True"):
+    with pytest.raises(UntrustedEnvError, match=r"envs.Trusted\(path\)"):
         finetune(hostile, steps=20, out_dir=planted / "ft-api")
     assert not (planted / "ran").exists()
 
@@ -153,6 +153,16 @@ def test_the_opt_in_imports_the_recorded_id(planted):
     """With --trust-env-code the file's id is honoured: here it names a real env."""
     run = _run(["eval", "hostile.pt", "--episodes", "1", "--trust-env-code"], planted)
     assert run.returncode == 0, run.stderr
+    assert (planted / "ran").exists()
+
+
+def test_a_trusted_path_is_the_python_opt_in(planted, monkeypatch):
+    """In Python the path itself carries the opt-in (`Trusted`), through every layer below
+    the call: the same file that is refused as a plain path is evaluated."""
+    monkeypatch.chdir(planted)
+    monkeypatch.syspath_prepend(str(planted))
+    loaded = CheckpointPolicy.from_checkpoint(Trusted(planted / "hostile.pt"))
+    assert len(evaluate(loaded, 1)) == 1
     assert (planted / "ran").exists()
 
 
@@ -256,14 +266,19 @@ def test_a_resumed_finetune_does_not_trust_the_envs_its_checkpoint_adds(planted,
 
 def test_every_library_path_leaves_the_trust_decision_to_check_trusted():
     """The paths that load an env id from a file (eval, export, finetune, zoo, resume, the
-    absolute metric) pass the user's flag or the ids the user named; none passes a literal
-    `trust_env_code=True`, which is how the two holes above came about."""
+    absolute metric) pass on the path the user gave (maybe `Trusted`) or the ids the user
+    named; only the command line's --trust-env-code makes a `Trusted` path of its own (a
+    library path vouching for a file itself is how the two holes above came about)."""
     import ast
 
     offenders = []
+    vouchers = {Path("mat_sdk/envs/registry.py"), Path("mat_sdk/cli/common.py")}
     for path in [*(REPO / "mat_sdk").rglob("*.py"), *(REPO / "export").rglob("*.py")]:
+        if path.relative_to(REPO) in vouchers:
+            continue
         for node in ast.walk(ast.parse(path.read_text())):
-            literal = isinstance(node, ast.keyword) and isinstance(node.value, ast.Constant)
-            if literal and node.arg == "trust_env_code" and node.value.value is True:
-                offenders.append(f"{path.relative_to(REPO)}:{node.value.lineno}")
+            called = node.func if isinstance(node, ast.Call) else None
+            name = getattr(called, "id", None) or getattr(called, "attr", None)
+            if name == "Trusted":
+                offenders.append(f"{path.relative_to(REPO)}:{node.lineno}")
     assert offenders == []

@@ -9,6 +9,7 @@ import pytest
 
 from mat_runtime import BundleError, Policy
 from mat_runtime.zoo import models, zoo_dir
+from mat_sdk.envs import Trusted
 from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate
 from mat_sdk.policy import checkpoint
 
@@ -43,7 +44,7 @@ def test_a_zoo_model_reproduces_its_card_far_above_a_random_team(name):
     with_examples()  # an example's robot (go2-walk-mat: quadrupeds:go2)
     card = _card(name)
     score = card["return"]
-    loaded = CheckpointPolicy.from_checkpoint(f"zoo:{name}", trust_env_code=True)  # ours
+    loaded = CheckpointPolicy.from_checkpoint(Trusted(f"zoo:{name}"))  # ours
     returns = evaluate(loaded, score["episodes"], seed=score["evaluation_seed"])
     assert abs(np.mean(returns) - score["mean"]) <= max(0.05 * abs(score["mean"]), 1.0)
     random = card["random_team_return"]

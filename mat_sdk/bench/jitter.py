@@ -45,7 +45,7 @@ def _measure(bundle: Path, env_id: str, rate: float, seconds: float, spin: bool)
     episode = int(rate * (seconds + 2 * loop.WARMUP)) + 1
     policy = Policy.load(bundle, threads=1)
     options = {**policy.env_options, "episode_limit": episode}  # the robot as trained
-    team = make_team(env_id, policy.env_faults, **options)
+    team = make_team(env_id, faults=policy.env_faults, **options)
     obs = np.zeros((team.n_agents, policy.obs_dim), np.float32)
     obs[:] = team.reset(seed=0)
     actions = np.zeros((team.n_agents, policy.action_size), np.float32)

@@ -105,10 +105,12 @@ def parse_faults(values: tuple[str, ...]) -> tuple:
 
 
 def fault_option(purpose: str) -> Callable:
-    """`--fault NAME=zero|remove|weak:S`, repeatable (see `parse_faults`)."""
+    """`--fault NAME=zero|remove|weak:S`, repeatable: the command gets the `Fault`s
+    (`parse_faults`; none: an empty tuple)."""
     return click.option(
-        "--fault", "faults", multiple=True, metavar="NAME=zero|remove|weak:S", help=purpose
-    )
+        "--fault", "faults", multiple=True, metavar="NAME=zero|remove|weak:S", help=purpose,
+        callback=lambda context, parameter, values: parse_faults(values),
+    )  # fmt: skip
 
 
 def set_option(purpose: str = "Any training option, e.g. lr=3e-4.") -> Callable:
@@ -116,14 +118,28 @@ def set_option(purpose: str = "Any training option, e.g. lr=3e-4.") -> Callable:
     return click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help=purpose)
 
 
-def trust_option() -> Callable:
-    """`--trust-env-code`: the opt-in to import a `module:function` env id read from a file."""
-    return click.option(
-        "--trust-env-code",
-        is_flag=True,
-        help="Import the module:function env id that the checkpoint records (it runs that "
-        "module's code): only for files you trust. Built-in ids need no opt-in.",
-    )
+def trust_option(argument: str = "checkpoint") -> Callable:
+    """`--trust-env-code`: the opt-in to import a `module:function` env id read from the file
+    the command's `argument` names. The command gets that argument as `envs.Trusted` (the
+    library's one way to vouch for a file), not the flag."""
+
+    def decorate(command: Callable) -> Callable:
+        @functools.wraps(command)
+        def vouched(*args, trust_env_code: bool, **kwargs):
+            if trust_env_code:
+                from mat_sdk.envs.registry import Trusted
+
+                kwargs[argument] = Trusted(kwargs[argument])
+            return command(*args, **kwargs)
+
+        return click.option(
+            "--trust-env-code",
+            is_flag=True,
+            help="Import the module:function env id that the checkpoint records (it runs that "
+            "module's code): only for files you trust. Built-in ids need no opt-in.",
+        )(vouched)
+
+    return decorate
 
 
 def quiet_option() -> Callable:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from mat_sdk.cli import main
-from mat_sdk.cli.common import fault_option, parse_faults, user_errors
+from mat_sdk.cli.common import fault_option, user_errors
 
 
 @main.command()
@@ -44,14 +44,14 @@ def envs() -> None:
 @click.option("--seed", default=0, show_default=True)
 @fault_option("Break a joint or agent.")
 @user_errors
-def rollout(env_id: str, steps: int, seed: int, faults: tuple[str, ...]) -> None:
+def rollout(env_id: str, steps: int, seed: int, faults: tuple) -> None:
     """Roll out a random team on ENV_ID and print the episode returns.
 
     Example: mat rollout cheetah-6x1 --steps 2000 --fault bfoot=zero
     """
     from mat_sdk.envs import random_rollout
 
-    env, returns = random_rollout(env_id, steps, seed, parse_faults(faults))
+    env, returns = random_rollout(env_id, steps, seed, faults=faults)
     agents = env.possible_agents
     click.echo(f"{env_id}: agents {agents}, obs {env.observation_space(agents[0]).shape}")
     click.echo(f"random team, {steps} steps: episode returns {[round(r, 2) for r in returns]}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from mat_sdk.cli import main
-from mat_sdk.cli.common import fault_option, parse_faults, parse_settings, trust_option, user_errors
+from mat_sdk.cli.common import fault_option, parse_settings, trust_option, user_errors
 
 
 @main.command("eval")
@@ -42,8 +42,7 @@ from mat_sdk.cli.common import fault_option, parse_faults, parse_settings, trust
 @trust_option()
 @user_errors
 def evaluate(
-    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, grid,
-    plot, trust_env_code,
+    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, grid, plot
 ) -> None:  # fmt: skip
     """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default),
     episodes that ended early (a robot's fall), and a floating-base robot's forward speed.
@@ -62,27 +61,33 @@ def evaluate(
     """
     from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate_episodes
 
-    loaded = CheckpointPolicy.from_checkpoint(checkpoint, trust_env_code=trust_env_code)
+    loaded = CheckpointPolicy.from_checkpoint(checkpoint)
     if plot and not (sweep or grid):
         raise click.UsageError("--plot draws a sweep or a grid: give --sweep or --grid too")
     if sweep and grid:
         raise click.UsageError("--sweep and --grid are two reports: give one")
-    if grid:
-        _grid(loaded, plot, episodes, seed, env_id, faults, stochastic, video, env_options)
-        return
-    if sweep:
-        _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, video,
-               env_options)  # fmt: skip
+    options = parse_settings(env_options, param_hint="--env-option")
+    if sweep or grid:
+        given = {"--env": env_id, "--fault": faults, "--stochastic": stochastic, "--video": video}
+        for name, value in given.items():
+            if value:
+                report = "--grid" if grid else "--sweep"
+                raise click.UsageError(
+                    f"{report} evaluates the checkpoint's own robot; drop {name}"
+                )
+        _grid(loaded, plot, episodes, seed, options) if grid else _sweep(
+            loaded, sweep, plot, episodes, seed, options
+        )
         return
     result = evaluate_episodes(
         loaded,
         episodes,
         env_id=env_id,
-        faults=parse_faults(faults) if faults else None,
         deterministic=not stochastic,
         seed=seed,
         video=video,
-        **parse_settings(env_options, param_hint="--env-option"),
+        **({"faults": faults} if faults else {}),
+        **options,
     )
     name = env_id or loaded.training.env.id
     click.echo(f"{name}: {result.summary()}")
@@ -92,36 +97,26 @@ def evaluate(
         click.echo(f"video: {video}")
 
 
-def _sweep(loaded, sweep, plot, episodes, seed, env_id, faults, stochastic, video, options):
+def _sweep(loaded, sweep, plot, episodes, seed, options):
     from mat_sdk.evaluation import robustness
 
-    for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
-                        (video, "--video")):  # fmt: skip
-        if given:
-            raise click.UsageError(f"--sweep evaluates the checkpoint's own robot; drop {name}")
     factor, sep, values = sweep.partition("=")
     if not sep:
         raise click.BadParameter(f"{sweep!r}: use FACTOR=VALUES", param_hint="--sweep")
     points = robustness.sweep(
-        loaded, factor, robustness.parse_values(values), episodes, seed,
-        **parse_settings(options, param_hint="--env-option"),
-    )  # fmt: skip
+        loaded, factor, robustness.parse_values(values), episodes, seed, **options
+    )
     click.echo(robustness.table(points, factor))
     if plot:
         click.echo(f"plot: {robustness.plot({'policy': [points]}, factor, plot)}")
 
 
-def _grid(loaded, plot, episodes, seed, env_id, faults, stochastic, video, options):
+def _grid(loaded, plot, episodes, seed, options):
     from mat_sdk.evaluation import tracking
 
-    for given, name in ((env_id, "--env"), (faults, "--fault"), (stochastic, "--stochastic"),
-                        (video, "--video")):  # fmt: skip
-        if given:
-            raise click.UsageError(f"--grid evaluates the checkpoint's own robot; drop {name}")
-    settings = parse_settings(options, param_hint="--env-option")
-    if "command" in settings:
+    if "command" in options:
         raise click.UsageError("--grid sets the command itself, one per row; drop command=")
-    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, **settings)
+    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, **options)
     click.echo(tracking.table(rows))
     if plot:
         click.echo(f"plot: {tracking.plot(rows, plot)}")

@@ -28,8 +28,7 @@ from mat_sdk.cli.common import trust_option, user_errors
 @trust_option()
 @user_errors
 def export_command(
-    checkpoint: str, out_dir: str | None, force: bool, engines: tuple[str, ...],
-    trust_env_code: bool,
+    checkpoint: str, out_dir: str | None, force: bool, engines: tuple[str, ...]
 ) -> None:  # fmt: skip
     """Export CHECKPOINT to an ONNX bundle for the torch-free runtime.
 
@@ -44,9 +43,7 @@ def export_command(
     target = (
         Path(out_dir) if out_dir else Path(checkpoint).with_name(Path(checkpoint).stem + "_onnx")
     )
-    manifest = export(
-        checkpoint, target, force=force, trust_env_code=trust_env_code, engines=engines
-    )
+    manifest = export(checkpoint, target, force=force, engines=engines)
     worst = max(manifest["parity"]["max_abs_diff"].values())
     counts = ", ".join(manifest["parity"]["max_abs_diff"])
     graphs = ", ".join(f"{name} (opset {g['opset']})" for name, g in manifest["graphs"].items())

@@ -9,7 +9,6 @@ import click
 from mat_sdk.cli import main
 from mat_sdk.cli.common import (
     fault_option,
-    parse_faults,
     parse_settings,
     quiet_option,
     resumable,
@@ -62,7 +61,6 @@ def finetune(
     action_std,
     resume,
     settings,
-    trust_env_code,
     quiet,
 ) -> None:
     """Adapt a trained CHECKPOINT to a changed robot (ENV_ID, default: the same env).
@@ -89,15 +87,13 @@ def finetune(
     from mat_sdk.training.finetune import default_out
     from mat_sdk.training.finetune import finetune as run
 
-    changes = parse_faults(faults)
-    out = Path(out_dir) if out_dir else default_out(env_id, changes)
+    out = Path(out_dir) if out_dir else default_out(env_id, faults)
     again = f"mat finetune {checkpoint} --out {out} --steps {steps} --resume"
     options = parse_settings(settings, FINETUNE_OPTIONS)
     with resumable(out / "checkpoint.pt", again):
         result = run(
             checkpoint,
             env=env_id,
-            faults=changes,
             steps=steps,
             out_dir=out,
             eval_episodes=episodes,
@@ -106,7 +102,7 @@ def finetune(
             action_std=action_std,
             resume=resume,
             progress_bar=not quiet,
-            trust_env_code=trust_env_code,
+            **({"faults": faults} if faults else {}),
             **options,
         )
     result.trainer.close()

@@ -9,7 +9,6 @@ from click.core import ParameterSource
 from mat_sdk.cli import main
 from mat_sdk.cli.common import (
     fault_option,
-    parse_faults,
     parse_settings,
     quiet_option,
     resumable,
@@ -163,7 +162,7 @@ def train(
     typed = {
         "recipe": recipe, "num_envs": num_envs, "workers": workers,
         "update_workers": update_workers, "seed": seed, "device": device,
-        "faults": parse_faults(faults), "ray": ray_address,
+        "faults": faults, "ray": ray_address,
     }  # fmt: skip
     settings = parse_settings(settings, TRAIN_OPTIONS)
     given = [name for name, parameter in OWN.items() if _typed(context, parameter)]

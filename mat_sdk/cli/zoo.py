@@ -57,11 +57,9 @@ def zoo(context: click.Context) -> None:
     help="Episodes the card reports.",
 )  # fmt: skip
 @click.option("--force", is_flag=True, help="Replace a model of that name.")
-@trust_option()
+@trust_option("run")
 @user_errors
-def zoo_add(
-    run: Path, name: str, made_by: str, episodes: int, force: bool, trust_env_code: bool
-) -> None:
+def zoo_add(run: Path, name: str, made_by: str, episodes: int, force: bool) -> None:
     """Add RUN (a run directory or checkpoint) to the zoo as NAME, with its card.
 
     NAME is letters, digits, '.', '_' and '-'. The model is exported, evaluated and written
@@ -69,5 +67,5 @@ def zoo_add(
     """
     from mat_sdk.zoo import add, card_text
 
-    card = add(run, name, made_by, episodes, force=force, trust_env_code=trust_env_code)
+    card = add(run, name, made_by, episodes, force=force)
     click.echo(card_text(card))

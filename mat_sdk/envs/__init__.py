@@ -70,6 +70,7 @@ from mat_sdk.envs.registry import (
     ENTRY_POINT_GROUP,
     FAMILY_IDENTITY,
     EnvSpec,
+    Trusted,
     UntrustedEnvError,
     build_team,
     check_trusted,
@@ -80,6 +81,7 @@ from mat_sdk.envs.registry import (
     recipe_of,
     register,
     resolve,
+    trusted_as,
 )
 from mat_sdk.envs.tasks import legged
 
@@ -99,6 +101,7 @@ __all__ = [
     "RobotTeam",
     "TeamParallelEnv",
     "TrainingRecipe",
+    "Trusted",
     "UntrustedEnvError",
     "UnusedActuators",
     "VecTeam",
@@ -121,30 +124,28 @@ __all__ = [
     "register",
     "resolve",
     "terms",
+    "trusted_as",
 ]
 
 Env = str | EnvSpec
 
 
-def make_team(env: Env, faults: FaultsLike = None, visual: bool = False, **options: Any):
+def make_team(env: Env, *, visual: bool = False, **options: Any):
     """The array-level team (`step(actions [n, action_width])`), the fastest single env.
-    `visual`: to render, an MJCF model compiled with the visual assets (textures, visual
-    meshes) that env copies leave out."""
+    `options` are the env's own (`seed`, `faults`, `randomize`, ...: an unknown one is
+    refused, naming those it takes). `visual`: to render, an MJCF model compiled with the
+    visual assets (textures, visual meshes) that env copies leave out."""
     spec = resolve(env)
     factory = getattr(spec, "env_factory", None)
     if visual and isinstance(factory, ModelEnvironment):
         spec = replace(spec, env_factory=replace(factory, visual=True))
-    return build_team(spec, faults, **options)
+    return build_team(spec, **options)
 
 
-def make(
-    env: Env,
-    faults: FaultsLike = None,
-    render_mode: str | None = None,
-    **options: Any,
-) -> TeamParallelEnv:
-    """A PettingZoo `ParallelEnv` for an env id (see `list_envs()`) or spec."""
-    return TeamParallelEnv(build_team(env, faults, **options), render_mode=render_mode)
+def make(env: Env, *, render_mode: str | None = None, **options: Any) -> TeamParallelEnv:
+    """A PettingZoo `ParallelEnv` for an env id (see `list_envs()`) or spec; `options` as
+    `make_team` takes them."""
+    return TeamParallelEnv(build_team(env, **options), render_mode=render_mode)
 
 
 def make_vec(
@@ -152,15 +153,15 @@ def make_vec(
     num_envs: int,
     workers: int = 0,
     seed: int = 0,
-    faults: FaultsLike = None,
     **options: Any,
 ) -> VecTeam:
-    """`num_envs` autoresetting copies stepped as arrays; `workers` > 0 uses processes.
+    """`num_envs` autoresetting copies stepped as arrays; `workers` > 0 uses processes;
+    `options` as `make_team` takes them, copy i seeded `seed + i`.
 
     Worker processes get the resolved spec (pickled), so an env registered only in this
     process works with workers as long as its functions are importable (module-level)."""
     spec = resolve(env)
-    factory = TeamFactory(build_team, {"env": spec, "faults": faults_of(faults), **options})
+    factory = TeamFactory(build_team, {"env": spec, **options})
     return VecTeam(factory, num_envs, workers=workers, seed=seed)
 
 
@@ -196,14 +197,14 @@ def list_envs() -> list[dict[str, Any]]:
 
 
 def random_rollout(
-    env: Env, steps: int, seed: int = 0, faults: FaultsLike = None
+    env: Env, steps: int, seed: int = 0, **options: Any
 ) -> tuple[TeamParallelEnv, list[float]]:
     """`steps` env steps of a team acting uniformly at random over each agent's action space
     (from streams independent of the env's own); -> the env and its episodes' returns (the
     last one as far as it got)."""
     import numpy as np
 
-    parallel = make(env, faults=faults, seed=seed)
+    parallel = make(env, seed=seed, **options)
     streams = np.random.SeedSequence([seed, 1]).generate_state(len(parallel.possible_agents))
     for agent, stream in zip(parallel.possible_agents, streams, strict=True):
         parallel.action_space(agent).seed(int(stream))

@@ -12,7 +12,8 @@ Checkpoints and bundles record the id, so every tool rebuilds the same env from 
 
 The trust rule: an id read from a file (a checkpoint, a manifest, a zoo card) is data, not
 code. A `module:function` id from a file is imported only when the user opts in for that run
-(`check_trusted`); built-in, `mamujoco:`, registered and installed ids need no opt-in, since
+(`check_trusted`: the file given as `Trusted(path)`, on the command line with
+`--trust-env-code`); built-in, `mamujoco:`, registered and installed ids need no opt-in, since
 they run only code that is already installed. Even then, an id must name a plain Python
 function outside the standard library, called with no arguments, that returns a spec.
 """
@@ -21,13 +22,14 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import os
 import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from importlib import metadata
+from pathlib import Path
 from typing import Any
 
-from mat_sdk.envs.core.faults import Fault, faults_of
 from mat_sdk.envs.core.games import CoordinationGame
 from mat_sdk.envs.core.recipe import TrainingRecipe
 from mat_sdk.envs.mujoco.mamujoco import PREFIX as MAMUJOCO
@@ -48,8 +50,8 @@ class TeamClassSpec:
     env_id: str
     kind: type
 
-    def build(self, faults: tuple[Fault, ...] = (), **options: Any):
-        return self.kind(self.env_id, faults, **options)
+    def build(self, **options: Any):
+        return self.kind(self.env_id, **options)
 
 
 EnvSpec = RobotSpec | PettingZooSpec | TeamClassSpec
@@ -96,13 +98,38 @@ def imports_code(env_id: str) -> bool:
     )
 
 
+@dataclass(frozen=True)
+class Trusted(os.PathLike):
+    """A file the user vouches for: a `module:function` env id it records may be imported,
+    which runs that module's code. Give it wherever a checkpoint or run path goes
+    (`Trainer.load(Trusted("runs/go2/checkpoint.pt"))`); the trust travels with the path, so
+    no function between the user and `check_trusted` needs to pass a flag along."""
+
+    path: Path
+
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    def __fspath__(self) -> str:
+        return os.fspath(self.path)
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+
+def trusted_as(path: str | os.PathLike, source: str | os.PathLike) -> Path | Trusted:
+    """`path` (a copy of `source`, or a file written from it) trusted as `source` is."""
+    return Trusted(path) if isinstance(source, Trusted) else Path(path)
+
+
 def check_trusted(
-    env_ids: Iterable[str], trusted: bool, source: str, named: Iterable[str] = ()
+    env_ids: Iterable[str], source: str | os.PathLike, named: Iterable[str] = ()
 ) -> None:
     """The one trust decision: refuse the `module:function` ids read from `source` (a file)
-    unless the user typed that same id in this process (`named`) or opted in (`trusted`).
-    Loading a downloaded file or a tampered run directory must never run its code."""
-    if trusted:
+    unless the user typed that same id in this process (`named`) or vouched for the file
+    (`source` given as `Trusted`). Loading a downloaded file or a tampered run directory must
+    never run its code."""
+    if isinstance(source, Trusted):
         return
     typed = {id_of(env) for env in named}
     for env_id in env_ids:
@@ -111,8 +138,8 @@ def check_trusted(
             raise UntrustedEnvError(
                 f"{source} records the env id {env_id!r}, which would import and run code from "
                 f"module {module!r}; an id read from a file runs no code unless you opt in: "
-                "pass --trust-env-code (trust_env_code=True) if you trust that file, or name "
-                "the env yourself"
+                "pass --trust-env-code (in Python: the path as mat_sdk.envs.Trusted(path)) if "
+                "you trust that file, or name the env yourself"
             )
 
 
@@ -177,15 +204,12 @@ def family_identity(env: str | EnvSpec, options: Mapping[str, Any]) -> dict[str,
     return {**options, "position": FAMILY_IDENTITY}
 
 
-def build_team(
-    env: str | EnvSpec, faults: Iterable[Fault] | Mapping[str, str] | None = None, **options: Any
-):
+def build_team(env: str | EnvSpec, **options: Any):
     """The team an id or spec names, with the options its team class takes."""
-    faults = faults_of(faults)
     spec = resolve(env)
     kind = spec.kind if isinstance(spec, TeamClassSpec) else _TEAM_OF[type(spec)]
     _check_options(kind, spec.env_id, options)
-    return spec.build(faults, **options)
+    return spec.build(**options)
 
 
 def installed_ids() -> list[str]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -28,19 +29,18 @@ class CheckpointPolicy:
     policy: PolicyNetwork
     obs_norm: RunningMeanStd | None
     training: TrainConfig  # how it was trained: its env, faults and options among it
-    source: str = "the checkpoint"  # where the policy came from, for messages
-    # the user vouched for the file: a `module:function` env id it records may be imported
-    # to evaluate it (`envs.check_trusted`)
-    trusted: bool = False
+    # where the policy came from, for messages; given as `envs.Trusted`, the user vouched
+    # for it: a `module:function` env id it records may be imported to evaluate it
+    source: str | os.PathLike = "the checkpoint"
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, trust_env_code: bool = False) -> CheckpointPolicy:
-        """The policy a checkpoint holds; `trust_env_code`: the user's word that the env code
-        it names may run (its `module:function` id imported when evaluating on it)."""
+    def from_checkpoint(cls, path: str | os.PathLike) -> CheckpointPolicy:
+        """The policy a checkpoint holds; `envs.Trusted(path)`: the user's word that the env
+        code it names may run (its `module:function` id imported when evaluating on it)."""
         payload = checkpoint.load(path)
         policy, norm = checkpoint.restore_policy(payload, path)
         training = checkpoint.recorded_config(payload)
-        return cls(policy, norm, training, str(path), trusted=trust_env_code)
+        return cls(policy, norm, training, path)
 
     def predict(self, obs, team, deterministic: bool = True, generator=None, available=None):
         """Actions for raw observations of `team` (an env with its agents and sizes): an
@@ -168,7 +168,6 @@ def evaluate(
     loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
-    faults: envs.FaultsLike = None,
     deterministic: bool = True,
     seed: int = EVALUATION_SEED,
     video: str | Path | None = None,
@@ -176,7 +175,7 @@ def evaluate(
 ) -> list[float]:
     """Returns of `episodes` full episodes (`evaluate_episodes`)."""
     return evaluate_episodes(
-        loaded, episodes, env_id, faults, deterministic, seed, video, **env_options
+        loaded, episodes, env_id, deterministic, seed, video, **env_options
     ).returns
 
 
@@ -184,23 +183,21 @@ def evaluate_episodes(
     loaded: CheckpointPolicy,
     episodes: int = 10,
     env_id: str | None = None,
-    faults: envs.FaultsLike = None,
     deterministic: bool = True,
     seed: int = EVALUATION_SEED,
     video: str | Path | None = None,
     **env_options: Any,
 ) -> Episodes:
     """`episodes` full episodes, one per env copy, each copy's first episode; `env_options`
-    override the trained env's (e.g. a robot's fixed `command`).
+    override the trained env's (e.g. a robot's fixed `command`, other `faults`).
 
     Without `env_id`, the env the policy was trained on; a `module:function` id that the
     checkpoint records is imported only if the user trusted it (`from_checkpoint`)."""
     trained = loaded.training.env
     if env_id is None:
-        envs.check_trusted([trained.id], loaded.trusted, loaded.source)
+        envs.check_trusted([trained.id], loaded.source)
     env_id = env_id or trained.id
-    faults = trained.faults if faults is None else faults
-    options = {**trained.options, **env_options}
+    options = {**trained.team_options, **env_options}
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
@@ -208,7 +205,7 @@ def evaluate_episodes(
     generator = torch.Generator().manual_seed(seed)
     with (
         one_torch_thread(),
-        envs.make_vec(env_id, episodes, seed=seed, faults=faults, **options) as vec,
+        envs.make_vec(env_id, episodes, seed=seed, **options) as vec,
     ):
         check_fits(loaded.policy.cfg, vec, env_id)
         obs = vec.reset(seed=seed)
@@ -219,7 +216,7 @@ def evaluate_episodes(
         frames, recorded = [], 0
         recorder = None
         if video:  # env 0's episode again, on a copy with the model's visual assets
-            recorder = envs.make_team(env_id, faults=faults, seed=seed, visual=True, **options)
+            recorder = envs.make_team(env_id, seed=seed, visual=True, **options)
             recorder.reset(seed=seed)
             stride = max(1, round(1 / (recorder.control_timestep * VIDEO_FPS)))
         while np.isnan(returns).any():

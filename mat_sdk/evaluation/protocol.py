@@ -92,7 +92,7 @@ class EvaluationLog:
         best = CheckpointPolicy.from_checkpoint(path)
         # this run's own best policy: a file that records another env is refused
         named = trainer.config.env.ids
-        envs.check_trusted([best.training.env.id], False, str(path), named=named)
+        envs.check_trusted([best.training.env.id], path, named=named)
         returns = evaluate(best, self.episodes * ABSOLUTE_FACTOR, env_id=trainer.config.env.id)
         run["absolute_metrics"] = {"return": returns}
         self._write()

@@ -115,15 +115,19 @@ class EnvConfig:
         """Every env id trained on: `id`, then `more`."""
         return [self.id, *self.more]
 
+    @property
+    def team_options(self) -> dict[str, Any]:
+        """What `envs.make_team` takes to build this env: its options and faults."""
+        return {**self.options, "faults": self.faults}
+
     def make_vec(self, num_envs: int, workers: int, seed: int, env_id: str | None = None):
         """`num_envs` copies of `env_id` (default: `id`) stepped by `workers` processes,
         copy i seeded `seed + i`."""
         from mat_sdk import envs
 
         return envs.make_vec(
-            env_id or self.id, num_envs, workers=workers, seed=seed, faults=self.faults,
-            **self.options,
-        )  # fmt: skip
+            env_id or self.id, num_envs, workers=workers, seed=seed, **self.team_options
+        )
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Few-shot fine-tuning: adapt a trained policy to a changed robot with little new data.
 
-    from mat_sdk.envs.core.faults import Fault
+    from mat_sdk.envs import Fault
     from mat_sdk.training.finetune import finetune
     result = finetune("runs/cheetah/checkpoint.pt", faults=[Fault.zero("bthigh")],
                       steps=20_000, out_dir="runs/cheetah-bthigh")
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,9 +48,8 @@ class FinetuneResult:
 
 
 def finetune(
-    checkpoint: str | Path,
+    checkpoint: str | os.PathLike,
     env: str | None = None,
-    faults: envs.FaultsLike = None,
     steps: int = 20_000,
     out_dir: str | Path | None = None,
     eval_episodes: int = 10,
@@ -59,19 +59,18 @@ def finetune(
     resume: bool = False,
     callback: Callable[[Trainer, dict], bool | None] | None = None,
     progress_bar: bool = True,
-    trust_env_code: bool = False,
     **options: Any,
 ) -> FinetuneResult:
     """Zero-shot evaluation, `steps` env steps of PPO from the pre-trained weights, evaluation.
 
-    `env` defaults to the checkpoint's env; `faults` describe the change; `action_std`
-    re-opens exploration (a continuous policy's action std set afresh, e.g. 0.3, where a
-    long training left it near 0.1); `options` are any training options (num_envs, seed,
-    ...). With `resume=True`, continues the run in `out_dir` after an interruption, as it
-    was started (`options` then may only say how to run: device, workers, update_workers,
+    `env` defaults to the checkpoint's env; `options` are any training options: `faults`
+    describe the change, num_envs, seed, .... `action_std` re-opens exploration (a continuous
+    policy's action std set afresh, e.g. 0.3, where a long training left it near 0.1). With
+    `resume=True`, continues the run in `out_dir` after an interruption, as it was started
+    (`options` then may only say how to run: device, workers, update_workers,
     checkpoint_every). Writes OUT/finetune.json with both evaluations. Without `env`, a
-    `module:function` env id that the checkpoint records is imported only with
-    `trust_env_code=True`.
+    `module:function` env id that the checkpoint records is imported only for a checkpoint
+    given as `envs.Trusted(path)`.
     """
     if resume and action_std is not None:
         raise ValueError(
@@ -81,12 +80,11 @@ def finetune(
     out = Path(out_dir) if out_dir is not None else None
     with files.RunLock(out) if out else contextlib.nullcontext():
         if resume:  # as it was started: what is given again must be what it was
-            given = {**options, **({"faults": faults} if faults else {}), "lr": lr}
-            given = {k: v for k, v in given.items() if v is not None}
-            trainer, zero_shot = _resumed(out, env, trust_env_code, given)
+            given = {**options, "lr": lr}
+            given = {k: v for k, v in given.items() if v is not None and v != ()}
+            trainer, zero_shot = _resumed(out, env, checkpoint, given)
         else:
-            trainer = _started(checkpoint, env, faults, reset_optimizer, lr, action_std, out,
-                               trust_env_code, options)  # fmt: skip
+            trainer = _started(checkpoint, env, reset_optimizer, lr, action_std, out, options)
             zero_shot = trainer.evaluate(eval_episodes)
             if out:
                 _write_summary(out / SUMMARY_NAME, trainer, checkpoint, zero_shot, None)
@@ -97,28 +95,25 @@ def finetune(
     return FinetuneResult(trainer, zero_shot, final)
 
 
-def default_out(env: str | None, faults: envs.FaultsLike) -> Path:
+def default_out(env: str | None, changes: tuple[envs.Fault, ...]) -> Path:
     """runs/finetune-<the change>: its faults, else the env."""
-    changes = envs.faults_of(faults)
     label = "-".join(f"{f.target}_{f.mode}" for f in changes) or (env or "same")
     return Path("runs") / f"finetune-{label.replace(':', '_')}"
 
 
-def _started(
-    checkpoint, env, faults, reset_optimizer, lr, action_std, out, trust_env_code, options
-) -> Trainer:
+def _started(checkpoint, env, reset_optimizer, lr, action_std, out, options) -> Trainer:
     if out is not None and (out / CHECKPOINT_NAME).exists():
         raise FileExistsError(
             f"{out / CHECKPOINT_NAME} exists; resume that run or choose another out_dir"
         )
     return Trainer.from_pretrained(
-        checkpoint, env, faults, reset_optimizer, lr, out_dir=out,
-        trust_env_code=trust_env_code, action_std=action_std, **options,
-    )  # fmt: skip
+        checkpoint, env, reset_optimizer, lr, out_dir=out, action_std=action_std, **options
+    )
 
 
-def _resumed(out, env, trust_env_code, options) -> tuple[Trainer, list[float]]:
-    """The interrupted run in `out`, as it was started, and its zero-shot returns."""
+def _resumed(out, env, started_from, options) -> tuple[Trainer, list[float]]:
+    """The interrupted run in `out`, as it was started, and its zero-shot returns; its
+    checkpoint is trusted as the one it started from is (`envs.trusted_as`)."""
     resumed = None if out is None else out / CHECKPOINT_NAME
     if resumed is None or not resumed.exists():
         raise FileNotFoundError(f"nothing to resume: {out}/{CHECKPOINT_NAME} does not exist")
@@ -130,7 +125,7 @@ def _resumed(out, env, trust_env_code, options) -> tuple[Trainer, list[float]]:
                 "another env, or start a new run with another out_dir"
             )
         options = {**options, "env": recorded}  # typed by the user: trusted as named
-    trainer = Trainer.load(resumed, out_dir=out, trust_env_code=trust_env_code, **options)
+    trainer = Trainer.load(envs.trusted_as(resumed, started_from), out_dir=out, **options)
     zero_shot = json.loads((out / SUMMARY_NAME).read_text())["zero_shot"]["returns"]
     return trainer, zero_shot
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -73,7 +74,7 @@ class Trainer:
         self.env = self.envs[0]  # the shapes and names: the first env's
         if self.env.reward_terms and not cfg.init_from:  # warn before training, not after
             env = cfg.env
-            self.notes += check_reward(env.id, env.faults, cfg.run.seed, env.options)
+            self.notes += check_reward(env.id, cfg.run.seed, **env.team_options)
         self.model_config = cfg.model_config(self.env)
         self.policy: PolicyNetwork = build_policy(self.model_config).to(self.device)
         self.build_optimizer()
@@ -237,9 +238,8 @@ class Trainer:
     @classmethod
     def load(
         cls,
-        path: str | Path,
+        path: str | os.PathLike,
         out_dir: str | Path | None = None,
-        trust_env_code: bool = False,
         **overrides: Any,
     ) -> Trainer:
         """Rebuild a trainer from a checkpoint; `learn` then continues exactly where it stopped.
@@ -248,15 +248,15 @@ class Trainer:
         checkpoint_every); any other training option given must be the checkpoint's own
         (`checkpoint.training_options`). `resumed_with` holds what changed.
         A `module:function` env id the checkpoint records is imported only when the caller
-        names that same id (`env=`, `more_envs=`: typed by the user in this process) or with
-        `trust_env_code=True` (`envs.check_trusted`): a checkpoint from elsewhere runs no code.
+        names that same id (`env=`, `more_envs=`: typed by the user in this process) or the
+        path is given as `envs.Trusted(path)`: a checkpoint from elsewhere runs no code.
         """
         payload = checkpoint.load(path)
         train, changed = checkpoint.training_options(payload, path, overrides)
         named = [overrides[key] for key in ("env",) if key in overrides]  # the caller's own
         named += list(overrides.get("more_envs", ()))
         recorded = [train["env"], *train["more_envs"]]
-        envs.check_trusted(recorded, trust_env_code, str(path), named=named)
+        envs.check_trusted(recorded, path, named=named)
         if envs.is_family(train["env"]):  # trained without an identity: keep it so
             train["env_options"] = {"position": None, **train["env_options"]}
         trainer = cls(train.pop("env"), train.pop("algo"), out_dir=out_dir, **train)
@@ -275,35 +275,33 @@ class Trainer:
     @classmethod
     def from_pretrained(
         cls,
-        checkpoint_path: str | Path,
+        checkpoint_path: str | os.PathLike,
         env: Env | None = None,
-        faults: envs.FaultsLike = None,
         reset_optimizer: bool = True,
         lr: float | None = None,
         out_dir: str | Path | None = None,
-        trust_env_code: bool = False,
         action_std: float | None = None,
         **options: Any,
     ) -> Trainer:
         """A new run that starts from a trained policy, for a changed robot (few-shot).
 
         Takes the checkpoint's weights, model size, observation normaliser, value
-        normaliser and hyperparameters; `env`, `faults`, `lr` and `options` (any
-        training option, e.g. num_envs, seed) change what is trained on and how. Step
+        normaliser and hyperparameters; `env`, `lr` and `options` (any training option,
+        e.g. faults, num_envs, seed) change what is trained on and how. Step
         counts start from 0. `reset_optimizer=False` keeps the Adam moments too;
         `action_std` sets a continuous policy's action std afresh (`PolicyNetwork.reset_std`).
 
         The changed robot must give the same observation and action sizes (a removed agent
         keeps its team-mates' one-hot ids; `swimmer-N` has none, so any length works); a
         centralised critic also fixes the agent count. Without `env`, a `module:function` id
-        the checkpoint records is imported only with `trust_env_code=True`.
+        the checkpoint records is imported only for a path given as `envs.Trusted`.
         """
         payload = checkpoint.load(checkpoint_path)
-        changes = {**options, "faults": faults, **({} if lr is None else {"lr": lr})}
+        changes = {**options, **({} if lr is None else {"lr": lr})}
         train = checkpoint.pretrained_options(payload, checkpoint_path, changes)
         algo, trained_env = train.pop("algo"), train.pop("env")
         if env is None:
-            envs.check_trusted([trained_env], trust_env_code, str(checkpoint_path))
+            envs.check_trusted([trained_env], checkpoint_path)
         env = trained_env if env is None else envs.id_of(env)
         trainer = cls(env, algo, out_dir=out_dir, **train)
         try:

@@ -28,8 +28,8 @@ class CoordinationGame(ArrayTeam):
     def __init__(
         self,
         env_id: str,
-        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         *,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         seed: int | None = None,
     ):
         match = _ID.match(env_id)

@@ -89,8 +89,8 @@ class MaMuJoCoTeam(ArrayTeam):
     def __init__(
         self,
         env_id: str,
-        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         *,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         seed: int | None = None,
         agent_id: bool | None = None,
         agent_obsk: int | None = None,

@@ -197,6 +197,43 @@ def _check_range(
     object.__setattr__(config, name, (low, high))
 
 
+@dataclass
+class Draws:
+    """One episode's robot, as drawn: each factor's values (None: that factor is off)."""
+
+    friction: np.ndarray | None = None  # a scale per geom (or one for all)
+    mass: np.ndarray | None = None  # a scale per body (the world body's ignored)
+    payload: float | None = None  # kg added to the floating base
+    com: np.ndarray | None = None  # the base's centre-of-mass offset (m, 3)
+    strength: np.ndarray | None = None  # a scale per actuator
+    damping: np.ndarray | None = None  # a scale per hinge or slide
+    armature: np.ndarray | None = None  # a scale per hinge or slide
+    latency: int = 0  # control steps the action waits
+
+    def changes_inertia(self) -> bool:
+        """Whether MuJoCo's inertia-derived constants need recomputing."""
+        return any(v is not None for v in (self.mass, self.payload, self.com, self.armature))
+
+    def to_state(self) -> dict[str, np.ndarray]:
+        """The drawn factors by name, as arrays (a checkpoint's env state)."""
+        drawn = {f.name: getattr(self, f.name) for f in fields(self)}
+        drawn["latency"] = drawn["latency"] or None
+        return {k: np.array(v, dtype=np.float64) for k, v in drawn.items() if v is not None}
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, Any]) -> Draws:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(state) - known)
+        if unknown:
+            raise ValueError(f"randomization state: unknown factor(s) {unknown}")
+        values = {k: np.asarray(v, dtype=np.float64) for k, v in state.items()}
+        if "latency" in values:
+            values["latency"] = int(values["latency"])
+        if "payload" in values:
+            values["payload"] = float(values["payload"])
+        return cls(**values)
+
+
 class Randomizer:
     """A `Randomization` applied to one robot's MuJoCo model and data. The team calls it at
     reset (`new_episode`, `perturb_start`) and every step (`delay`, `push`, `noise`); it keeps
@@ -230,7 +267,7 @@ class Randomizer:
         self._check_against_model(env_id)
         self._scratch = mujoco.MjData(model)  # mj_setConst's workspace
         self._noise_index, self._noise_level = self._noise_table(signals, env_id)
-        self.draws: dict[str, Any] = {}
+        self.draws = Draws()
         self._pending: list[np.ndarray] = []
         self._next_push = math.inf
 
@@ -293,60 +330,57 @@ class Randomizer:
     def new_episode(self, rng) -> None:
         """Draw this episode's robot and apply it to the model (before the task's reset)."""
         config, model = self.config, self._model
-        draws: dict[str, Any] = {}
+        draws = Draws()
         if config.friction is not None:
             count = model.ngeom if config.per_geom_friction else 1
-            draws["friction"] = rng.uniform(*config.friction, count)
+            draws.friction = rng.uniform(*config.friction, count)
         if config.mass is not None:
-            draws["mass"] = rng.uniform(*config.mass, model.nbody)
+            draws.mass = rng.uniform(*config.mass, model.nbody)
         if self._base is not None and (config.payload or config.payload_share):
             kg = float(rng.uniform(*config.payload)) if config.payload else 0.0
             share = float(rng.uniform(*config.payload_share)) if config.payload_share else 0.0
-            draws["payload"] = kg + share * self.robot_mass
+            draws.payload = kg + share * self.robot_mass
         if config.com is not None and self._base is not None:
-            draws["com"] = rng.uniform(-config.com, config.com, 3)
+            draws.com = rng.uniform(-config.com, config.com, 3)
         if config.strength is not None:
-            draws["strength"] = rng.uniform(*config.strength, model.nu)
+            draws.strength = rng.uniform(*config.strength, model.nu)
         if config.damping is not None:
-            draws["damping"] = rng.uniform(*config.damping, len(self._joint_dofs))
+            draws.damping = rng.uniform(*config.damping, len(self._joint_dofs))
         if config.armature is not None:
-            draws["armature"] = rng.uniform(*config.armature, len(self._joint_dofs))
+            draws.armature = rng.uniform(*config.armature, len(self._joint_dofs))
         if config.latency is not None:
             low, high = config.latency
-            draws["latency"] = low + min(int(rng.uniform(0, high - low + 1)), high - low)
+            draws.latency = low + min(int(rng.uniform(0, high - low + 1)), high - low)
         self.draws = draws
         self._apply(draws)
         self._pending = []
         self._next_push = self._push_interval(rng)
 
-    def _apply(self, draws: Mapping[str, Any]) -> None:
+    def _apply(self, draws: Draws) -> None:
         model, nominal = self._model, self._nominal
         for name, values in nominal.items():
             getattr(model, name)[:] = values
-        if "friction" in draws:
-            scale = np.asarray(draws["friction"])
-            model.geom_friction[:] = nominal["geom_friction"] * scale[:, None]
-        if "mass" in draws:
-            scale = np.asarray(draws["mass"])
+        if draws.friction is not None:
+            model.geom_friction[:] = nominal["geom_friction"] * draws.friction[:, None]
+        if draws.mass is not None:
+            scale = draws.mass.copy()
             scale[0] = 1.0  # the world body
             model.body_mass[:] = nominal["body_mass"] * scale
             model.body_inertia[:] = nominal["body_inertia"] * scale[:, None]
-        if "payload" in draws:
-            model.body_mass[self._base] += draws["payload"]
-        if "com" in draws:
-            model.body_ipos[self._base] = nominal["body_ipos"][self._base] + draws["com"]
-        if "strength" in draws:
-            scale = np.asarray(draws["strength"])
-            model.actuator_gainprm[:, 0] = nominal["actuator_gainprm"][:, 0] * scale
-            kp = nominal["actuator_biasprm"][:, 1] * scale
+        if draws.payload is not None:
+            model.body_mass[self._base] += draws.payload
+        if draws.com is not None:
+            model.body_ipos[self._base] = nominal["body_ipos"][self._base] + draws.com
+        if draws.strength is not None:
+            model.actuator_gainprm[:, 0] = nominal["actuator_gainprm"][:, 0] * draws.strength
+            kp = nominal["actuator_biasprm"][:, 1] * draws.strength
             model.actuator_biasprm[:, 1] = np.where(self._affine, kp, model.actuator_biasprm[:, 1])
-        if "damping" in draws:
-            dofs = self._joint_dofs
-            model.dof_damping[dofs] = nominal["dof_damping"][dofs] * draws["damping"]
-        if "armature" in draws:
-            dofs = self._joint_dofs
-            model.dof_armature[dofs] = nominal["dof_armature"][dofs] * draws["armature"]
-        if any(k in draws for k in ("mass", "payload", "com", "armature")):
+        dofs = self._joint_dofs
+        if draws.damping is not None:
+            model.dof_damping[dofs] = nominal["dof_damping"][dofs] * draws.damping
+        if draws.armature is not None:
+            model.dof_armature[dofs] = nominal["dof_armature"][dofs] * draws.armature
+        if draws.changes_inertia():
             mujoco.mj_setConst(model, self._scratch)  # inertia-derived constants
 
     def perturb_start(self, rng) -> None:
@@ -372,7 +406,7 @@ class Randomizer:
     # ---------------------------------------------------------------- per step
     def delay(self, action: np.ndarray) -> np.ndarray:
         """The action the motors get now: the one sent `latency` steps ago (0 at the start)."""
-        steps = self.draws.get("latency", 0)
+        steps = self.draws.latency
         if not steps:
             return action
         if not self._pending:
@@ -399,19 +433,14 @@ class Randomizer:
     # ---------------------------------------------------------------- exact resume
     def get_state(self) -> dict[str, Any]:
         return {
-            "draws": {k: np.array(v, dtype=np.float64) for k, v in self.draws.items()},
+            "draws": self.draws.to_state(),
             "pending": [p.copy() for p in self._pending],
             "next_push": self._next_push,
         }
 
     def set_state(self, state: Mapping[str, Any]) -> None:
-        draws = {k: np.asarray(v, dtype=np.float64) for k, v in state["draws"].items()}
-        if "latency" in draws:
-            draws["latency"] = int(draws["latency"])
-        if "payload" in draws:
-            draws["payload"] = float(draws["payload"])
-        self.draws = draws
-        self._apply(draws)
+        self.draws = Draws.from_state(state["draws"])
+        self._apply(self.draws)
         self._pending = [np.asarray(p, dtype=np.float64) for p in state["pending"]]
         self._next_push = float(state["next_push"])
 

@@ -25,7 +25,6 @@ from dm_control.rl import control
 
 from mat_sdk.envs.core.base import user_call
 from mat_sdk.envs.core.checks import finite_range, is_real
-from mat_sdk.envs.core.faults import Fault
 from mat_sdk.envs.core.recipe import TrainingRecipe
 from mat_sdk.envs.mujoco import terms
 from mat_sdk.envs.mujoco.actuation import JointTargets
@@ -83,11 +82,11 @@ class RobotSpec:
             factory = with_task(task)
         return factory(seed)
 
-    def build(self, faults: tuple[Fault, ...] = (), **options: Any):
+    def build(self, **options: Any):
         """The team (`RobotTeam`); options as `mat_sdk.envs.make_team` takes them."""
         from mat_sdk.envs.mujoco.team import RobotTeam
 
-        return RobotTeam(self, faults, **options)
+        return RobotTeam(self, **options)
 
     def renamed(self, env_id: str) -> RobotSpec:
         return replace(self, env_id=env_id)

@@ -54,8 +54,8 @@ class RobotTeam(ArrayTeam):
     def __init__(
         self,
         spec: RobotSpec,
-        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         *,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         seed: int | None = None,
         agent_id: bool | None = None,
         hops: int | None = None,

@@ -18,7 +18,7 @@ largest, and the padding is masked so that it changes nothing the policy learns:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -46,8 +46,8 @@ class PettingZooSpec:
     episode_limit: int | None = None
     description: str = ""
 
-    def build(self, faults: tuple[Fault, ...] = (), **options: Any) -> PettingZooTeam:
-        return PettingZooTeam(self, faults, **options)
+    def build(self, **options: Any) -> PettingZooTeam:
+        return PettingZooTeam(self, **options)
 
     def renamed(self, env_id: str) -> PettingZooSpec:
         return replace(self, env_id=env_id)
@@ -112,8 +112,8 @@ class PettingZooTeam(ArrayTeam):
     def __init__(
         self,
         spec: PettingZooSpec,
-        faults: tuple[Fault, ...] = (),
         *,
+        faults: Iterable[Fault] | Mapping[str, str] | None = None,
         seed: int | None = None,
         agent_id: bool | None = None,
         episode_limit: int | None = None,

@@ -7,7 +7,6 @@ what the reward asks for: the weights were likely written for another robot's un
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -52,14 +51,12 @@ class RewardWarning(UserWarning):
     """A reward whose terms make moving not pay."""
 
 
-def check_reward(
-    env_id: str, faults: Mapping[str, str], seed: int, options: Mapping[str, Any]
-) -> list[str]:
-    """Warn (RewardWarning) when one penalty rules `env_id`'s reward under random actions;
-    -> the warnings, for a trainer's notes."""
+def check_reward(env_id: str, seed: int, **options: Any) -> list[str]:
+    """Warn (RewardWarning) when one penalty rules `env_id`'s reward (built with `options`)
+    under random actions; -> the warnings, for a trainer's notes."""
     from mat_sdk.envs.registry import build_team
 
-    team = build_team(env_id, faults, seed=seed, **options)
+    team = build_team(env_id, seed=seed, **options)
     warning = ruling_penalty(random_breakdown(team, seed=seed))
     if warning is None:
         return []
