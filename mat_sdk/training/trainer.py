@@ -326,8 +326,7 @@ class Trainer:
         """Returns of full episodes of the current policy on this trainer's (changed) robot."""
         from mat_sdk.evaluation.episodes import evaluate
 
-        # this run's own env, named to it: nothing read from a file
-        env_id = self.config.env.id
+        env_id = self.config.env.id  # this run's own, named to it: nothing read from a file
         return evaluate(self._as_loaded(), episodes, env_id=env_id, deterministic=deterministic)
 
     def _as_loaded(self):
