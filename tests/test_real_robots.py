@@ -168,6 +168,25 @@ def test_tracking_over_standing_pays_a_standing_robot_nothing_at_any_command():
     )
 
 
+def test_feet_slip_costs_a_sliding_foot_on_the_floor_and_nothing_in_the_air():
+    team = _team(seed=0, command=[0.0, 0.0, 0.0])
+    team.reset(seed=0)
+    for _ in range(50):  # settle: stand on all four feet
+        team.step(np.zeros((4, 3)))
+    step, data = team._task._step, team.physics.data.ptr
+    slip = terms.FeetSlip(feet=("FL", "FR", "RL", "RR"))
+    assert slip.value(step) == pytest.approx(0.0, abs=1e-3)  # standing: feet planted
+    data.qvel[:] = 0.0
+    data.qvel[0] = 0.5  # the whole robot slides forward at 0.5 m/s, every foot on the floor
+    team.physics.forward()
+    assert slip.value(step) == pytest.approx(-4 * 0.25 / step.scale.speed**2, rel=1e-6)
+    data.qpos[2] += 0.2  # lifted: no foot on the floor, no slip
+    team.physics.forward()
+    assert slip.value(step) == 0.0
+    with pytest.raises(ValueError, match="'paw' is neither a geom nor a body of the model"):
+        terms.FeetSlip(feet=("paw",)).value(step)
+
+
 def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):
     options = {**TINY, "num_envs": 2, "rollout_length": 20}
     with Trainer("go2:walk", out_dir=tmp_path / "a", **options) as trainer:

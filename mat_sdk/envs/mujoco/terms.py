@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from mat_sdk.envs.core.checks import finite_range, is_real, short
-from mat_sdk.envs.mujoco.trunk import Contacts, Trunk
+from mat_sdk.envs.mujoco.trunk import Contacts, Trunk, geom_ids
 
 
 @dataclass(frozen=True)
@@ -280,6 +280,29 @@ class FeetAirTime(Term):
         held = float(np.maximum(air - self.longest, 0.0)[~touching].sum())
         air[touching] = 0.0
         return strides - held
+
+
+@dataclass(frozen=True)
+class FeetSlip(Term):
+    """Minus the squared horizontal speed of every foot on the floor, in units of g h (the
+    robot's speed scale squared, `RobotScale`): a planted foot stays put, so a gait of
+    sliding feet (a shuffle) costs what a stride does not. A foot given as a body is its
+    lowest geom (the one on the floor)."""
+
+    feet: tuple[str, ...] = ()  # empty: the robot's feet (`LeggedRobot.feet`)
+
+    def value(self, step: Step) -> float:
+        contacts = step.cached(("contacts", self.feet), lambda m: Contacts(m, self.feet))
+        groups = step.cached(("foot_geoms", self.feet), lambda m: geom_ids(m, self.feet, "foot"))
+        velocity = step.cached("velocity_scratch", lambda m: np.zeros(6))
+        data, slip = step.data, 0.0
+        for group, down in zip(groups, contacts.read(data) > 0, strict=True):
+            if down:
+                geom = int(group[np.argmin(data.geom_xpos[group, 2])])
+                mujoco.mj_objectVelocity(step.model, data, mujoco.mjtObj.mjOBJ_GEOM, geom,
+                                         velocity, 0)  # fmt: skip
+                slip += velocity[3] ** 2 + velocity[4] ** 2  # world frame: [rotation, linear]
+        return -slip / step.scale.speed**2
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,8 @@ A task transfers across robots because every term is measured in the robot's own
 (`terms.RobotScale`: weight, standing height), the payload is a share of the robot's mass,
 and a step's reward is never below 0 (`only_positive_rewards`: ending an episode early never
 pays, whatever the penalties cost a heavy robot). Terms that name robot parts are written
-without names (`FeetAirTime()`, `IllegalContact()`) and take the robot's `feet` and `trunk`.
+without names (`FeetAirTime()`, `FeetSlip()`, `IllegalContact()`) and take the robot's
+`feet` and `trunk`.
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ class LeggedTask:
 def _named_parts(term: Any, robot: LeggedRobot) -> Any:
     """A term written without part names, given the robot's: feet for the feet's terms, the
     trunk for illegal contacts."""
-    if isinstance(term, terms.FeetAirTime) and not term.feet:
+    if isinstance(term, terms.FeetAirTime | terms.FeetSlip) and not term.feet:
         return replace(term, feet=tuple(robot.feet))
     if isinstance(term, terms.IllegalContact) and not term.names:
         return replace(term, names=tuple(robot.trunk))
