@@ -22,11 +22,8 @@ from mat_sdk.evaluation.episodes import CheckpointPolicy
 def contact_shares(path: str, command: tuple[float, float, float], steps: int, seed: int):
     """(foot names, each foot's share of `steps` steps in contact) for one checkpoint."""
     loaded = CheckpointPolicy.from_checkpoint(path)
-    trained = loaded.training.env
-    envs.check_trusted([trained.id], True, path)  # the user named these files
-    team = envs.make_team(
-        trained.id, trained.faults, seed=seed, command=list(command), **trained.options
-    )
+    trained = loaded.training.env  # the user named these files: their env ids are imported
+    team = envs.make_team(trained.id, seed=seed, command=list(command), **trained.team_options)
     layout = team.wiring().observation
     (start, stop), feet = layout.source["contacts"], layout.signals["contacts"]
     obs = team.reset(seed=seed)
