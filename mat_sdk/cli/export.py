@@ -53,6 +53,8 @@ def export_command(
     if second is not None:
         diffs = ", ".join(f"{name} {d:.1e}" for name, d in second["max_abs_diff"].items())
         click.echo(f"{second['engine']} (CPU, f32) vs ORT max abs diff: {diffs}")
+        for what, diff in second.get("wrong", {}).items():
+            click.echo(f"  {second['engine']} computes {what} wrong: off by {diff:.2g}")
         for what, reason in second["refused"].items():
             click.echo(f"  {second['engine']} refuses {what}: {reason}")
         for name, diff in second["reused"].items():

@@ -445,7 +445,9 @@ def _loop(
     """The agent steps for any agent count n, in one ONNX `Loop` per entry of LOOP_STEPS,
     whose body has that many agent steps written out: n = 8 a + b runs b single steps, then a
     bodies of 8 (fewer loop iterations; bodies of 16 or tiers of 1, 4, 16 measured no
-    better, BENCHMARKS.md); a loop may run zero times. -> [B, n, ..] outputs."""
+    better, BENCHMARKS.md). A loop that would run zero times is skipped by an `If` around
+    it (`_loop_run`): OpenVINO's CPU plugin refuses a `Loop` that runs zero times.
+    -> [B, n, ..] outputs."""
     packed = g.op("Concat", *per_agent.values(), axis=-1)
     left = g.op("Shape", "obs", start=1, end=2)  # agents not yet given to a loop
     trips, starts = {}, {}
@@ -455,8 +457,7 @@ def _loop(
         starts[count] = left  # the agents before this loop's: the smaller loops serve them
     # what the steps so far output, [B, agents so far, ..]: nothing yet
     outputs = {name: _none_yet(g, batch, size) for name, size in step.outputs().items()}
-    # a name per carried value: OpenVINO's ONNX reader counts a tensor given twice once
-    carried = [first, *(g.op("Identity", cache) for cache in empty)]
+    carried = [first, *empty]
     for count in sorted(LOOP_STEPS):  # the agents in order: single steps first
         first_agents = g.op("Add", starts[count], g.const(np.arange(count), "steps", np.int64))
         carried, outputs = _loop_run(
@@ -480,7 +481,8 @@ def _loop_run(
     `first_agents + i * count` and appends their outputs to `outputs` [B, agents so far, ..],
     carried through the loop: no scan outputs, whose stacking engines disagree on (ONNX's
     reference evaluator concatenates them on their first axis, ONNX Runtime stacks them on
-    a new one) and which a loop that runs zero times leaves without a shape.
+    a new one) and which a loop that runs zero times leaves without a shape. The `Loop` sits
+    in an `If` that passes the carried values on unchanged when `trips` is 0.
     -> (final carried values, {name: [B, agents so far, ..]})."""
     body = GraphBuilder(g.weights, prefix=f"steps{count}/")
     i, cond, x = (f"steps{count}/{name}" for name in ("i", "cond", "x"))
@@ -522,11 +524,33 @@ def _loop_run(
         ],
         body.initializers,
     )
+    state = [*carried, *outputs.values()]
+    types = [FLOAT] * len(carried) + [FLOAT if s else INT64 for s in step.outputs().values()]
+    trip_count = g.op("Squeeze", trips)
+    ran = GraphBuilder(g.weights, prefix=f"run{count}/")
+    # a name per carried value: OpenVINO's ONNX reader counts a tensor given twice once (the
+    # empty caches); inside the branch, where ONNX Runtime can drop these Identities at load
+    distinct = [ran.op("Identity", name) for name in state]
+    looped = ran.op(
+        "Loop", trip_count, g.const(True, "true", np.bool_), *distinct, outputs=len(state),
+        body=loop_body,
+    )  # fmt: skip
+    skipped = GraphBuilder(g.weights, prefix=f"skip{count}/")
+    unchanged = [skipped.op("Identity", name) for name in state]
     results = g.op(
-        "Loop", g.op("Squeeze", trips), g.const(True, "true", np.bool_), *carried,
-        *outputs.values(), outputs=len(carried) + len(outputs), body=loop_body,
+        "If", g.op("Greater", trip_count, g.const(0, "zero", np.int64)), outputs=len(state),
+        then_branch=_branch(ran, f"run{count}", looped, types),
+        else_branch=_branch(skipped, f"skip{count}", unchanged, types),
     )  # fmt: skip
     return results[: len(carried)], dict(zip(outputs, results[len(carried) :], strict=True))
+
+
+def _branch(g: GraphBuilder, name: str, outputs: list[str], types: list[int]) -> onnx.GraphProto:
+    """An `If` branch: `g`'s nodes, reading the enclosing graph's values, giving `outputs`."""
+    values = [
+        helper.make_tensor_value_info(o, t, None) for o, t in zip(outputs, types, strict=True)
+    ]
+    return helper.make_graph(g.nodes, name, [], values, g.initializers)
 
 
 def _split(g: GraphBuilder, tensor: str, count: int) -> list[str]:
