@@ -4,11 +4,9 @@
 A robot computer with an Intel CPU may run OpenVINO rather than ONNX Runtime; this says which
 graphs it runs as ONNX Runtime does. Each graph is compiled once and run on every agent count
 the export measures (a specialised `decode_nN.onnx` on its own count). What the engine refuses
-and where it computes something else are reported per graph and count, never hidden:
-OpenVINO's CPU plugin runs `decode.onnx`'s loops wrong once an iteration starts with 15 or
-more agents' caches (`wrong`; its unrolled `decode_nN.onnx` is exact at any count, so that is
-the graph to deploy there), and one compiled model that serves a second agent count can give
-wrong outputs (`reused`): compile one per count.
+and where it computes something else are reported per graph and count (`refused`, `wrong`),
+never hidden; one compiled model that serves a second agent count can give wrong outputs
+(`reused`): compile one per count.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from onnx import TensorProto, helper, numpy_helper
 from mat_sdk.policy.model import MAT, UNAVAILABLE_LOGIT, PolicyNetwork
 
 OPSET = 24  # `Attention` with a KV cache
-LOOP_STEPS = (1, 8)  # agent steps per iteration of the any-count graph's `Loop`s
+BODY = 8  # agent steps per iteration of the any-count graph's second `Loop`
 FLOAT, INT64 = TensorProto.FLOAT, TensorProto.INT64
 LN_EPS = 1e-5  # torch.nn.LayerNorm's default
 
@@ -442,26 +442,26 @@ class _AgentStep:
 def _loop(
     g: GraphBuilder, step: _AgentStep, per_agent: dict, widths, batch: str, first, empty, caches
 ):
-    """The agent steps for any agent count n, in one ONNX `Loop` per entry of LOOP_STEPS,
-    whose body has that many agent steps written out: n = 8 a + b runs b single steps, then a
-    bodies of 8 (fewer loop iterations; bodies of 16 or tiers of 1, 4, 16 measured no
-    better, BENCHMARKS.md). A loop that would run zero times is skipped by an `If` around
-    it (`_loop_run`): OpenVINO's CPU plugin refuses a `Loop` that runs zero times.
-    -> [B, n, ..] outputs."""
+    """The agent steps for any agent count n in two ONNX `Loop`s: b single steps, then a
+    bodies of `BODY` steps written out (fewer loop iterations; bodies of 16 or tiers of 1, 4,
+    16 measured no better, BENCHMARKS.md), with n = BODY a + b and 1 <= b <= BODY. The single
+    steps so run at least once, and the bodies' loop (zero times for n <= BODY) sits in an
+    `If` that skips it then: OpenVINO's CPU plugin refuses a `Loop` that runs zero times (it
+    bounds the carried caches below by one iteration's growth), and computes one inside an
+    `If` wrong when the single steps' loop is guarded too. -> [B, n, ..] outputs."""
     packed = g.op("Concat", *per_agent.values(), axis=-1)
-    left = g.op("Shape", "obs", start=1, end=2)  # agents not yet given to a loop
-    trips, starts = {}, {}
-    for count in sorted(LOOP_STEPS, reverse=True):
-        size = g.const([count], "count", np.int64)
-        trips[count], left = g.op("Div", left, size), g.op("Mod", left, size)
-        starts[count] = left  # the agents before this loop's: the smaller loops serve them
+    agents = g.op("Shape", "obs", start=1, end=2)
+    one, body = g.const([1], "one", np.int64), g.const([BODY], "body", np.int64)
+    singles = g.op("Add", g.op("Mod", g.op("Sub", agents, one), body), one)
+    bodies = g.op("Div", g.op("Sub", agents, singles), body)
     # what the steps so far output, [B, agents so far, ..]: nothing yet
     outputs = {name: _none_yet(g, batch, size) for name, size in step.outputs().items()}
     carried = [first, *empty]
-    for count in sorted(LOOP_STEPS):  # the agents in order: single steps first
-        first_agents = g.op("Add", starts[count], g.const(np.arange(count), "steps", np.int64))
+    for count, trips, start, guarded in ((1, singles, None, False), (BODY, bodies, singles, True)):
+        steps = g.const(np.arange(count), "steps", np.int64)
+        first_agents = steps if start is None else g.op("Add", start, steps)
         carried, outputs = _loop_run(
-            g, step, packed, widths, carried, outputs, caches, count, trips[count], first_agents
+            g, step, packed, widths, carried, outputs, caches, count, trips, first_agents, guarded
         )
     return outputs
 
@@ -475,14 +475,24 @@ def _none_yet(g: GraphBuilder, batch: str, size: int) -> str:
 
 
 def _loop_run(
-    g: GraphBuilder, step, packed, widths, carried, outputs, caches, count, trips, first_agents
+    g: GraphBuilder,
+    step,
+    packed,
+    widths,
+    carried,
+    outputs,
+    caches,
+    count,
+    trips,
+    first_agents,
+    guarded,
 ):
     """One `Loop` whose body runs `count` agent steps; iteration i serves the agents
     `first_agents + i * count` and appends their outputs to `outputs` [B, agents so far, ..],
     carried through the loop: no scan outputs, whose stacking engines disagree on (ONNX's
     reference evaluator concatenates them on their first axis, ONNX Runtime stacks them on
-    a new one) and which a loop that runs zero times leaves without a shape. The `Loop` sits
-    in an `If` that passes the carried values on unchanged when `trips` is 0.
+    a new one) and which a loop that runs zero times leaves without a shape. `guarded`: the
+    `Loop` sits in an `If` that passes the carried values on unchanged when `trips` is 0.
     -> (final carried values, {name: [B, agents so far, ..]})."""
     body = GraphBuilder(g.weights, prefix=f"steps{count}/")
     i, cond, x = (f"steps{count}/{name}" for name in ("i", "cond", "x"))
@@ -525,24 +535,25 @@ def _loop_run(
         body.initializers,
     )
     state = [*carried, *outputs.values()]
-    types = [FLOAT] * len(carried) + [FLOAT if s else INT64 for s in step.outputs().values()]
     trip_count = g.op("Squeeze", trips)
-    ran = GraphBuilder(g.weights, prefix=f"run{count}/")
+    ran = GraphBuilder(g.weights, prefix=f"run{count}/") if guarded else g
     # a name per carried value: OpenVINO's ONNX reader counts a tensor given twice once (the
-    # empty caches); inside the branch, where ONNX Runtime can drop these Identities at load
+    # empty caches); ONNX Runtime drops these Identities at load
     distinct = [ran.op("Identity", name) for name in state]
     looped = ran.op(
         "Loop", trip_count, g.const(True, "true", np.bool_), *distinct, outputs=len(state),
         body=loop_body,
     )  # fmt: skip
-    skipped = GraphBuilder(g.weights, prefix=f"skip{count}/")
-    unchanged = [skipped.op("Identity", name) for name in state]
-    results = g.op(
-        "If", g.op("Greater", trip_count, g.const(0, "zero", np.int64)), outputs=len(state),
-        then_branch=_branch(ran, f"run{count}", looped, types),
-        else_branch=_branch(skipped, f"skip{count}", unchanged, types),
-    )  # fmt: skip
-    return results[: len(carried)], dict(zip(outputs, results[len(carried) :], strict=True))
+    if guarded:
+        types = [FLOAT] * len(carried) + [FLOAT if s else INT64 for s in step.outputs().values()]
+        skipped = GraphBuilder(g.weights, prefix=f"skip{count}/")
+        unchanged = [skipped.op("Identity", name) for name in state]
+        looped = g.op(
+            "If", g.op("Greater", trip_count, g.const(0, "zero", np.int64)), outputs=len(state),
+            then_branch=_branch(ran, f"run{count}", looped, types),
+            else_branch=_branch(skipped, f"skip{count}", unchanged, types),
+        )  # fmt: skip
+    return looped[: len(carried)], dict(zip(outputs, looped[len(carried) :], strict=True))
 
 
 def _branch(g: GraphBuilder, name: str, outputs: list[str], types: list[int]) -> onnx.GraphProto:
