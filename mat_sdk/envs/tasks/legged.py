@@ -143,15 +143,18 @@ WALK = LeggedTask(
 # Following a joystick: any velocity in the ranges of Unitree's deployed Go2 policy (vx
 # -0.5..1 m/s, vy +-0.5 m/s, yaw rate +-1 rad/s), a tenth of the commands zero (the stick at
 # rest: the robot stands, its joints at the start pose), a new command every 5 s within an
-# episode. WALK's terms otherwise, but tracking pays only what it gains over standing still:
-# under these commands, most of them small, the plain kernels pay a standing robot about
-# half of what tracking earns, and policies learnt to stand (docs/REAL_ROBOTS.md).
+# episode. WALK's terms otherwise, but tracking pays only what it gains over standing still
+# (under these commands, most of them small, the plain kernels pay a standing robot about
+# half of what tracking earns, and policies learnt to stand), and staying up pays what
+# standing earned before (Alive 0.75: else a fall costs little, and policies that tried to
+# move fell in half the episodes); docs/REAL_ROBOTS.md has the runs.
 JOYSTICK = replace(
     WALK,
     reward=(
         terms.TrackVelocity(1.0, over_standing=True),
         terms.TrackYawRate(0.5, over_standing=True),
-        *WALK.reward[2:],
+        terms.Alive(0.75),
+        *WALK.reward[3:],
         terms.StandStill(0.5),
     ),
     commands=terms.VelocityCommand(
