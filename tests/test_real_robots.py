@@ -309,7 +309,7 @@ def test_every_command_of_the_real_robot_tutorial_runs(tmp_path):
     environment = {**os.environ, "PYTHONPATH": str(tmp_path / "examples")}
     outputs = []
     for line in lines:
-        words = shlex.split(line)
+        words = shlex.split(line, comments=True)
         words = [short.get(words[i - 1], word) if i else word for i, word in enumerate(words)]
         program = (
             [str(Path(sys.executable).with_name("mat"))] if words[0] == "mat" else [sys.executable]

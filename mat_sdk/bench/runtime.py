@@ -66,7 +66,9 @@ def latencies(
 def untrained_bundle(directory: Path, env_id: str = "cheetah-6x1", **model) -> tuple[Path, object]:
     """A freshly initialised policy for `env_id`, exported to `directory`/bundle, and its
     torch module: the speed of a step does not depend on what the weights learned."""
-    with Trainer(env_id, "mat", num_envs=1, rollout_length=1, **model) as trainer:
+    with Trainer(
+        env_id, "mat", num_envs=1, rollout_length=1, num_minibatches=1, **model
+    ) as trainer:
         path = trainer.save(directory / "model.pt")
         policy = trainer.policy.eval()
     export(path, directory / "bundle", agent_counts=(1, 2))
