@@ -75,9 +75,10 @@ def evaluate(
                 raise click.UsageError(
                     f"{report} evaluates the checkpoint's own robot; drop {name}"
                 )
-        _grid(loaded, plot, episodes, seed, options) if grid else _sweep(
-            loaded, sweep, plot, episodes, seed, options
-        )
+        if grid:
+            _grid(loaded, plot, episodes, seed, options)
+        else:
+            _sweep(loaded, sweep, plot, episodes, seed, options)
         return
     result = evaluate_episodes(
         loaded,

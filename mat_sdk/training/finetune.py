@@ -81,7 +81,9 @@ def finetune(
     with files.RunLock(out) if out else contextlib.nullcontext():
         if resume:  # as it was started: what is given again must be what it was
             given = {**options, "lr": lr}
-            given = {k: v for k, v in given.items() if v is not None and v != ()}
+            given = {k: v for k, v in given.items() if v is not None}
+            if not given.get("faults", True):  # no change given: not a change to check
+                del given["faults"]
             trainer, zero_shot = _resumed(out, env, checkpoint, given)
         else:
             trainer = _started(checkpoint, env, reset_optimizer, lr, action_std, out, options)
