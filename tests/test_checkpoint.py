@@ -106,6 +106,18 @@ def test_an_edited_checkpoint_is_refused_by_every_reader(payload, tmp_path, case
         assert not (tmp_path / "bundle").exists(), reader
 
 
+@pytest.mark.parametrize("lr", [float("nan"), 5.0, -1e-3, "3e-4"])
+def test_resume_refuses_a_learning_rate_out_of_bounds(payload, tmp_path, lr):
+    """An adaptive run's rate is read back from the file, so it is bounded there."""
+
+    def edit(p):
+        p["optimizer"]["param_groups"][0]["lr"] = lr
+
+    path = _edited(payload, tmp_path, "bad_lr", edit)
+    with pytest.raises(CheckpointError, match=r"learning rate must be in \(0, 1\]"):
+        Trainer.load(path)
+
+
 def test_resume_names_a_missing_training_state(payload, tmp_path):
     path = _edited(payload, tmp_path, "no_rng", lambda p: p.pop("rng"))
     with pytest.raises(CheckpointError, match="cannot resume from it.*KeyError: 'rng'"):

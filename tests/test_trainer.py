@@ -100,6 +100,7 @@ RESUMABLE = {
     "several agent counts": ("swimmer-4", {"more_envs": ["swimmer-5", "swimmer-6"]}),
     "compiled": pytest.param("hopper-4x1", {"compile": True}, marks=pytest.mark.slow),
     "HAPPO": ("hopper-4x1", {"algo": "happo"}),
+    "adaptive learning rate": ("hopper-4x1", {"desired_kl": 0.002}),
 }
 
 

@@ -8,6 +8,7 @@ hold no code.
 from __future__ import annotations
 
 import errno
+import numbers
 import os
 import re
 import shutil
@@ -198,6 +199,10 @@ def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -
     collector.obs_norm.load_state_dict(payload["obs_norm"])
     value_norm.load_state_dict(payload["value_norm"])
     optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
+    for group in optimizer.param_groups:  # an adaptive rate is the file's own: bound it
+        lr = group["lr"]
+        if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr <= 1:
+            raise ValueError(f"the optimizer's learning rate must be in (0, 1], got {lr!r}")
     progress = Progress(int(payload["progress"]["steps"]), int(payload["progress"]["updates"]))
     saved_on = payload["rng"].get("device", "cpu")  # older checkpoints: cpu only
     if saved_on == collector.device.type:

@@ -146,6 +146,10 @@ class PPOConfig:
     value_coef: float = 1.0
     huber_delta: float = 10.0
     max_grad_norm: float = 0.5
+    # A learning rate adapted to keep each minibatch's KL from the rollout's policy near
+    # this (rsl_rl's schedule, `mat_sdk.training.adaptive_lr`); `lr` is where it starts.
+    # None: a constant `lr`.
+    desired_kl: float | None = None
     gamma: float = 0.99
     gae_lambda: float = 0.95
     # Advantages are scaled by their batch std, floored at this (reward units). When nearly
@@ -158,7 +162,8 @@ class PPOConfig:
 
     def __post_init__(self):
         positive = ("num_envs", "rollout_length", "lr", "critic_lr", "adam_eps", "ppo_epochs",
-                    "num_minibatches", "clip", "huber_delta", "max_grad_norm")  # fmt: skip
+                    "num_minibatches", "clip", "huber_delta", "max_grad_norm",
+                    "desired_kl")  # fmt: skip
         _check_numbers(self, (
             _positive(*positive),
             (("entropy_coef", "value_coef", "advantage_std_floor"), lambda x: x >= 0, ">= 0"),
@@ -307,6 +312,11 @@ class TrainConfig:
             raise ValueError(
                 f"{self.algo.upper()} updates its agents one after another in this process: "
                 "update_workers and compile do not apply to it; leave them at 0 and false"
+            )
+        if method.sequential_update and self.ppo.desired_kl is not None:
+            raise ValueError(
+                f"desired_kl: {self.algo.upper()}'s agents step one after another with a "
+                "constant lr; leave desired_kl unset"
             )
         rows = self.ppo.steps_per_update // self.ppo.num_minibatches
         if rows < run.update_workers + 1:

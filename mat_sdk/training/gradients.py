@@ -29,7 +29,7 @@ from mat_sdk.training.ppo import LossCoefficients, LossTerms, Rows, minibatch_lo
 if TYPE_CHECKING:
     from mat_sdk.policy.config import TrainConfig
 
-_TERMS = ("total", "policy", "value", "entropy", "clip_fraction")  # LossTerms' fields
+_TERMS = ("total", "policy", "value", "entropy", "clip_fraction", "kl")  # LossTerms' fields
 
 
 def _bounds(rows: int, parts: int) -> list[int]:

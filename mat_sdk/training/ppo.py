@@ -84,6 +84,9 @@ class LossTerms:
     value: Tensor
     entropy: Tensor
     clip_fraction: Tensor
+    # The KL divergence from the rollout's policy, per agent (summed over its action
+    # dimensions), estimated from the log-ratios: (r - 1) - log r, unbiased and >= 0.
+    kl: Tensor
 
 
 def minibatches(
@@ -135,8 +138,9 @@ def ppo_loss(
     counted = counted_entries(active, action_dims)
     entropy = masked_mean(entropy, counted)
     clip_fraction = masked_mean(clipped, counted)
+    kl = masked_mean(((ratio - 1) - log_ratio).detach().sum(-1, keepdim=True), active)
     total = policy_loss - entropy_coef * entropy + value_coef * value
-    return LossTerms(total, policy_loss, value, entropy, clip_fraction)
+    return LossTerms(total, policy_loss, value, entropy, clip_fraction, kl)
 
 
 def value_loss(

@@ -32,6 +32,7 @@ class TrainingRecipe:
     clip: float | None = None
     entropy_coef: float | None = None
     max_grad_norm: float | None = None
+    desired_kl: float | None = None
     gamma: float | None = None
     gae_lambda: float | None = None
     tune: bool | None = None
