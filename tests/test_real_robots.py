@@ -4,6 +4,7 @@ a controller that acts from the robot's sensors through the bundle's wiring."""
 
 from __future__ import annotations
 
+import math
 import re
 import subprocess
 import sys
@@ -185,6 +186,26 @@ def test_feet_slip_costs_a_sliding_foot_on_the_floor_and_nothing_in_the_air():
     assert slip.value(step) == 0.0
     with pytest.raises(ValueError, match="'paw' is neither a geom nor a body of the model"):
         terms.FeetSlip(feet=("paw",)).value(step)
+
+
+def test_feet_rhythm_pays_phases_up_to_the_robots_step_time_and_a_planted_foot_nothing():
+    team = _team(seed=0, command=[0.7, 0.0, 0.0])
+    team.reset(seed=0)
+    for _ in range(50):  # settle: stand on all four feet
+        team.step(np.zeros((4, 3)))
+    step, data = team._task._step, team.physics.data.ptr
+    rhythm = terms.FeetRhythm(feet=("FL", "FR", "RL", "RR"))
+    phase = 1.3 * math.sqrt(step.scale.height / step.scale.gravity)  # 0.2 s on the Go2
+    within = math.floor(phase / step.control_timestep)  # steps whose phase time pays
+    earned = [rhythm.value(step) for _ in range(within + 2)]
+    assert earned[0] == pytest.approx(step.control_timestep / phase)  # the phase's first step
+    assert earned[within - 1] == pytest.approx(within * step.control_timestep / phase)
+    assert earned[-2:] == [0.0, 0.0]  # planted for longer than a step: nothing
+    data.qpos[2] += 0.2  # lifted: every foot starts a new phase, in the air
+    team.physics.forward()
+    assert rhythm.value(step) == pytest.approx(step.control_timestep / phase)
+    step.command[:] = 0.0  # told to stand: time in the air costs
+    assert rhythm.value(step) == pytest.approx(-2 * step.control_timestep / phase)
 
 
 def test_go2_trains_for_a_few_updates_and_resumes_exactly(tmp_path):

@@ -59,6 +59,11 @@ class RobotScale:
         """sqrt(g h), m/s: a Froude speed; vertical speeds and power scale with it."""
         return math.sqrt(self.gravity * self.height)
 
+    @property
+    def time(self) -> float:
+        """sqrt(h / g), s: the robot's pendulum time; its steps' durations scale with it."""
+        return math.sqrt(self.height / self.gravity)
+
     @classmethod
     def of(cls, model: mujoco.MjModel, height: float) -> RobotScale:
         mass = float(model.body_mass[1:].sum())
@@ -280,6 +285,44 @@ class FeetAirTime(Term):
         held = float(np.maximum(air - self.longest, 0.0)[~touching].sum())
         air[touching] = 0.0
         return strides - held
+
+
+@dataclass(frozen=True)
+class FeetRhythm(Term):
+    """Steps in the robot's own rhythm (Isaac Lab's air-time reward for Spot, in the robot's
+    units). While the command asks to move, each foot earns how long its current phase, in
+    the air or on the floor, has lasted, as a share of `phase`, until the phase outlasts
+    `phase`; then nothing until the foot changes phase. A foot that never lifts (a shuffle)
+    earns nothing after its first phase, and phases of `phase` earn the most. At a zero
+    command a foot earns its time on the floor and pays for its time in the air, the same
+    way. The mean over the feet, in [-1, 1).
+
+    `phase` is in units of the robot's pendulum time sqrt(h / g) (`RobotScale.time`): 1.3
+    is 0.22 s on the Go2 and 0.3 s on Spot (Isaac Lab's); seconds with `relative=False`."""
+
+    feet: tuple[str, ...] = ()  # empty: the robot's feet (`LeggedRobot.feet`)
+    phase: float = 1.3
+    relative: bool = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        self._positive("phase")
+
+    def value(self, step: Step) -> float:
+        contacts = step.cached(("contacts", self.feet), lambda m: Contacts(m, self.feet))
+        touching = (contacts.read(step.data) > 0).astype(float)
+        key = f"phase_time.{'.'.join(self.feet)}"
+        # row 0: how long each foot has been in its phase; row 1: on the floor (1) or not
+        memory = step.memory.setdefault(key, np.stack([np.zeros_like(touching), touching]))
+        elapsed, was_touching = memory
+        elapsed[touching != was_touching] = 0.0
+        elapsed += step.control_timestep
+        was_touching[:] = touching
+        phase = self.phase * (step.scale.time if self.relative else 1.0)
+        share = elapsed / phase
+        if step.command.size == 0 or float(np.linalg.norm(step.command)) > 0.1:  # moving
+            return float(np.where(share < 1.0, share, 0.0).mean())
+        return float(np.clip(np.where(touching > 0, share, -share), -1.0, 1.0).mean())
 
 
 @dataclass(frozen=True)

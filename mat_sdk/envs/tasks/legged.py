@@ -99,7 +99,7 @@ class LeggedTask:
 def _named_parts(term: Any, robot: LeggedRobot) -> Any:
     """A term written without part names, given the robot's: feet for the feet's terms, the
     trunk for illegal contacts."""
-    if isinstance(term, terms.FeetAirTime | terms.FeetSlip) and not term.feet:
+    if isinstance(term, terms.FeetAirTime | terms.FeetRhythm | terms.FeetSlip) and not term.feet:
         return replace(term, feet=tuple(robot.feet))
     if isinstance(term, terms.IllegalContact) and not term.names:
         return replace(term, names=tuple(robot.trunk))
