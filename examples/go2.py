@@ -44,8 +44,8 @@ TERMINATE = [terms.Tilt(60.0), terms.IllegalContact(("base",))]
 WALK = terms.VelocityCommand(vx=(0.3, 1.0))  # forward at 0.3-1 m/s, straight
 CONTROL_HZ = 50
 # legged.WALK's recipe: 32 envs x 100 steps, 5 x 4 minibatches, the learning rate adapted to
-# a KL of 0.01 per leg (docs/REAL_ROBOTS.md section 11: a gait that holds in about 1e6 env
-# steps, where a constant 3e-4 needed 1.6e6)
+# a KL of 0.01 per leg, 5 s training episodes (docs/REAL_ROBOTS.md section 11: a gait that
+# holds in under 1e6 env steps, where a constant 3e-4 and 20 s episodes needed 1.6e6)
 WALK_RECIPE = legged.WALK.recipe
 
 

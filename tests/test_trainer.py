@@ -16,6 +16,7 @@ import torch
 from helpers import GAME
 
 from mat_sdk import envs
+from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate_episodes
 from mat_sdk.policy import checkpoint
 from mat_sdk.training.rollout import Trajectory
 from mat_sdk.training.trainer import TrainConfig, Trainer, TrainingDiverged
@@ -479,3 +480,17 @@ def test_happo_updates_agents_in_turn_each_weighing_the_earlier_agents_new_ratio
         policy.state_dict().items(), reference.state_dict().values(), strict=True
     ):
         assert torch.allclose(ours, theirs, atol=1e-5), name
+
+
+def test_training_episodes_end_at_train_episode_limit_and_evaluations_keep_the_envs(tmp_path):
+    """Shorter episodes in training only: more starts per env step; evaluations still run
+    the env's own length. (A swimmer never ends an episode early.)"""
+    options = {**TINY, "env_options": {"episode_limit": 40}, "train_episode_limit": 10}
+    with Trainer("swimmer-4", "mat", out_dir=tmp_path, **options) as trainer:
+        trainer.learn(60, progress_bar=False)  # 3 copies x 20 steps: two episodes each
+    assert sum(int(row["episodes"]) for row in logged_rows(tmp_path)) == 6
+    loaded = CheckpointPolicy.from_checkpoint(tmp_path / "checkpoint.pt")
+    assert loaded.training.env.train_episode_limit == 10  # recorded: a resume keeps it
+    assert evaluate_episodes(loaded, 2).lengths == [40, 40]  # the env's own limit
+    with pytest.raises(ValueError, match="train_episode_limit must be an integer > 0, got 0"):
+        Trainer("swimmer-4", "mat", out_dir=tmp_path / "bad", train_episode_limit=0)

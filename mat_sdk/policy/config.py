@@ -91,9 +91,16 @@ class EnvConfig:
     more: tuple[str, ...] = ()
     options: Mapping[str, Any] = field(default_factory=dict)  # e.g. {"agent_id": False}
     faults: tuple[Fault, ...] = ()  # a sequence of `Fault`s, or their mapping form
+    # Training episodes end (truncated: the return past them bootstrapped) after this many
+    # control steps: where the env's episodes are long, more of them start per env step, and
+    # a policy learns getting going from as many starts as it needs. Only the training envs
+    # take it; evaluations, the reward check and exports keep the env's own episode_limit.
+    # None: the env's.
+    train_episode_limit: int | None = None
 
     def __post_init__(self):
         _check_text(self, "id")
+        _check_numbers(self, (_positive("train_episode_limit"),))
         more = self.more
         if isinstance(more, str) or not all(isinstance(v, str) for v in more):
             raise ValueError(f"more_envs must be a list of strings, got {more!r}")
@@ -122,12 +129,13 @@ class EnvConfig:
 
     def make_vec(self, num_envs: int, workers: int, seed: int, env_id: str | None = None):
         """`num_envs` copies of `env_id` (default: `id`) stepped by `workers` processes,
-        copy i seeded `seed + i`."""
+        copy i seeded `seed + i`: the training envs (`train_episode_limit` applies)."""
         from mat_sdk import envs
 
-        return envs.make_vec(
-            env_id or self.id, num_envs, workers=workers, seed=seed, **self.team_options
-        )
+        options = self.team_options
+        if self.train_episode_limit is not None:
+            options["episode_limit"] = self.train_episode_limit
+        return envs.make_vec(env_id or self.id, num_envs, workers=workers, seed=seed, **options)
 
 
 @dataclass(frozen=True)
@@ -275,7 +283,8 @@ class RunConfig:
 PARTS = {"env": EnvConfig, "ppo": PPOConfig, "network": NetworkConfig, "run": RunConfig}
 # An option's flat name -> (its part, its field there): the names users, the CLI and task
 # recipes give. The env's fields keep the names they have always had as options.
-_RENAMED = {"env": "id", "more_envs": "more", "env_options": "options", "faults": "faults"}
+_RENAMED = {"env": "id", "more_envs": "more", "env_options": "options", "faults": "faults",
+            "train_episode_limit": "train_episode_limit"}  # fmt: skip
 OPTIONS: dict[str, tuple[str, str]] = {
     **{flat: ("env", name) for flat, name in _RENAMED.items()},
     **{f.name: (part, f.name) for part in ("ppo", "network", "run") for f in fields(PARTS[part])},
@@ -397,7 +406,8 @@ class TrainConfig:
         env = self.env
         return {
             "env": {"id": env.id, "more": list(env.more), "options": dict(env.options),
-                    "faults": as_mapping(env.faults)},
+                    "faults": as_mapping(env.faults),
+                    "train_episode_limit": env.train_episode_limit},
             "algo": self.algo,
             "recipe": self.recipe,
             **{name: _fields(getattr(self, name)) for name in ("ppo", "network", "run")},

@@ -33,6 +33,7 @@ class TrainingRecipe:
     entropy_coef: float | None = None
     max_grad_norm: float | None = None
     desired_kl: float | None = None
+    train_episode_limit: int | None = None
     gamma: float | None = None
     gae_lambda: float | None = None
     tune: bool | None = None
