@@ -190,7 +190,8 @@ def tuned(request: RunRequest, say: Say = print) -> dict[str, Any]:
         request.env_ids[0], options.get("env_options") or {}
     )
     run = {**options, "env": request.env_ids[0], "algo": request.algo}
-    return tuned_settings(request.out, run, fixed, max(0, request.free_cores), echo=say)
+    free = max(0, request.free_cores)
+    return tuned_settings(request.out, run, fixed, free, echo=say, steps=request.steps)
 
 
 def _on_cpu(device: str) -> bool:

@@ -9,8 +9,10 @@ loss and flushing subnormal floats to zero each win on some machines and lose on
 side by side (`compare`, interleaved rounds) on the run's own env and recipe, in rounds of
 choice: env workers (none, or one per free core), then the acting backend, each timed over
 whole rollouts; then how many update workers (eager), with torch.compile or not, flushing
-subnormals or not, each timed over optimizer steps on one rollout's data. A candidate that
-costs more to start (a process, a compile) must beat the simpler one by `MARGIN`. Env and
+subnormals or not, each timed over optimizer steps on one rollout's data, its start-up (a
+compile, a process) spread over the run's optimizer steps (`amortized`: a compile a short
+run cannot pay back loses). A candidate that costs more to start must also beat the simpler
+one by `MARGIN`. Env and
 update workers may take the same free cores: the loop is synchronous, so the ones idle while
 the others work.
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -93,6 +96,13 @@ def _epoch(trainer: Trainer, batch, minibatches) -> Callable[[], None]:
     return run
 
 
+def amortized(step_s: float, warmup_s: float, warmup_steps: int, run_steps: int) -> float:
+    """Seconds per optimizer step over a run of `run_steps`: the step's own, and the
+    warm-up's time beyond its `warmup_steps` steps (compiling, starting workers) spread over
+    the run."""
+    return step_s + max(0.0, warmup_s - warmup_steps * step_s) / run_steps
+
+
 def _label(settings: dict) -> str:
     return ", ".join(f"{name}={json.dumps(settings[name])}" for name in TUNED if name in settings)
 
@@ -108,12 +118,15 @@ class _Measurements:
         """The trainer, one rollout's rows and their minibatches the update rounds time."""
         self.trainer, self.batch, self.minibatches = trainer, batch, minibatches
 
-    def race(self, candidates: list[dict], rounds: int) -> dict:
+    def race(self, candidates: list[dict], rounds: int, run_steps: int | None = None) -> dict:
         """Measure the candidates side by side; the fastest, unless a simpler one (earlier
-        in the list) is within MARGIN of it."""
-        epochs = {}
+        in the list) is within MARGIN of it. Given the run's optimizer steps, a candidate's
+        start-up (compiling, starting workers: its warm-up's time beyond its steps) is
+        spread over them: a compile the run is too short to pay back is not chosen."""
+        epochs, warmups = {}, {}
         for settings in candidates:
             compile_mode = "default" if settings["compile"] else None
+            started = time.perf_counter()
             copied = twin(self.trainer, self.batch, settings["update_workers"], compile_mode,
                           flush_denormal=settings["flush_denormal"])  # fmt: skip
             self.twins.append(copied)
@@ -121,10 +134,18 @@ class _Measurements:
             for _ in range(WARMUP_EPOCHS):  # compiles, starts the workers, makes subnormals
                 epoch()  # (`compare` runs two more before it measures)
             epochs[_label(settings)] = epoch
+            warmups[_label(settings)] = time.perf_counter() - started
         per_epoch = compare(epochs, seconds=0.0, rounds=rounds)  # one epoch per round
         self.close()
-        seconds = {label: epoch_s / len(self.minibatches) for label, epoch_s in per_epoch.items()}
-        return self.choose(candidates, seconds, "optimizer step")
+        steps = len(self.minibatches)
+        seconds = {label: epoch_s / steps for label, epoch_s in per_epoch.items()}
+        if run_steps:
+            seconds = {
+                label: amortized(step_s, warmups[label], WARMUP_EPOCHS * steps, run_steps)
+                for label, step_s in seconds.items()
+            }
+        per = "optimizer step" + (f", start-up spread over {run_steps:,}" if run_steps else "")
+        return self.choose(candidates, seconds, per)
 
     def choose(self, candidates: list[dict], seconds: dict[str, float], per: str) -> dict:
         """The fastest candidate, unless a simpler one (earlier in the list) is within
@@ -153,10 +174,13 @@ class _Measurements:
         self.twins = []
 
 
-def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tuple[dict, list[dict]]:
+def measure(
+    config: dict, fixed: dict, free_cores: int, rounds: int = 3, steps: int | None = None
+) -> tuple[dict, list[dict]]:
     """Choose `TUNED` settings for a run of `config` (Trainer options, `env` and `algo`
     included) on this machine; `fixed`: the ones the user set, kept as given; `free_cores`:
-    cores the run's env and update workers may use beyond its own. -> (the chosen settings,
+    cores the run's env and update workers may use beyond its own; `steps`: the run's env
+    steps, over which the update's start-up costs are spread. -> (the chosen settings,
     a table of every candidate measured, round by round: each round's figures are comparable
     among themselves). A run on Ray keeps its rollout settings (its workers are Ray's)."""
     defaults = {name: TrainConfig().options()[name] for name in TUNED}
@@ -174,14 +198,19 @@ def measure(config: dict, fixed: dict, free_cores: int, rounds: int = 3) -> tupl
         size = rows // count
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(count)]
         measurements.update_on(trainer, batch, minibatches)
+        ppo = trainer.config.ppo
+        run_steps = (
+            None if steps is None else -(-steps // ppo.steps_per_update) * (ppo.ppo_epochs * count)
+        )  # the run's optimizer steps
         chosen = base
         if "update_workers" not in fixed:
             most = min(MAX_UPDATE_WORKERS, free_cores, size - 1)
             workers = [{**base, "update_workers": k} for k in range(most + 1)]
-            chosen = measurements.race(workers, rounds) if len(workers) > 1 else base
+            chosen = measurements.race(workers, rounds, run_steps) if len(workers) > 1 else base
         for name in ("compile", "flush_denormal"):
             if name not in fixed:
-                chosen = measurements.race([chosen, {**chosen, name: not chosen[name]}], rounds)
+                flipped = {**chosen, name: not chosen[name]}
+                chosen = measurements.race([chosen, flipped], rounds, run_steps)
         return {name: chosen[name] for name in TUNED if name not in fixed}, measurements.table
     finally:
         measurements.close()
@@ -229,10 +258,16 @@ def _rollout_rounds(
 
 
 def tuned_settings(
-    out: Path, config: dict, fixed: dict, free_cores: int, echo: Callable[[str], None] = print
+    out: Path,
+    config: dict,
+    fixed: dict,
+    free_cores: int,
+    echo: Callable[[str], None] = print,
+    steps: int | None = None,
 ) -> dict:
-    """The tuned settings for the run in `out`: those of OUT/tuning.json when a run there
-    measured them before, else measured now (and written there)."""
+    """The tuned settings for the run in `out` (of `steps` env steps): those of
+    OUT/tuning.json when a run there measured them before, else measured now (and written
+    there)."""
     path = out / TUNING_NAME
     if path.exists():
         recorded = json.loads(path.read_text())["chosen"]
@@ -244,7 +279,7 @@ def tuned_settings(
         "workers, acting backend, update workers, torch.compile, subnormal flushing (about a "
         "minute or two; --no-tune skips it)"
     )
-    chosen, table = measure(config, fixed, free_cores)
+    chosen, table = measure(config, fixed, free_cores, steps=steps)
     if table:
         print_table(table, "rollout and update settings measured, round by round")
     else:  # e.g. only the update workers left open, and no core to give them
