@@ -169,12 +169,17 @@ def test_tracking_over_standing_pays_a_standing_robot_nothing_at_any_command():
     )
 
 
-def test_feet_slip_costs_a_sliding_foot_on_the_floor_and_nothing_in_the_air():
-    team = _team(seed=0, command=[0.0, 0.0, 0.0])
+def _standing(command):
+    """A Go2 settled on its four feet at `command`: the team, its terms' step, its data."""
+    team = _team(seed=0, command=command)
     team.reset(seed=0)
-    for _ in range(50):  # settle: stand on all four feet
+    for _ in range(50):
         team.step(np.zeros((4, 3)))
-    step, data = team._task._step, team.physics.data.ptr
+    return team, team._task._step, team.physics.data.ptr
+
+
+def test_feet_slip_costs_a_sliding_foot_on_the_floor_and_nothing_in_the_air():
+    team, step, data = _standing([0.0, 0.0, 0.0])
     slip = terms.FeetSlip(feet=("FL", "FR", "RL", "RR"))
     assert slip.value(step) == pytest.approx(0.0, abs=1e-3)  # standing: feet planted
     data.qvel[:] = 0.0
@@ -189,11 +194,7 @@ def test_feet_slip_costs_a_sliding_foot_on_the_floor_and_nothing_in_the_air():
 
 
 def test_feet_rhythm_pays_phases_up_to_the_robots_step_time_and_a_planted_foot_nothing():
-    team = _team(seed=0, command=[0.7, 0.0, 0.0])
-    team.reset(seed=0)
-    for _ in range(50):  # settle: stand on all four feet
-        team.step(np.zeros((4, 3)))
-    step, data = team._task._step, team.physics.data.ptr
+    team, step, data = _standing([0.7, 0.0, 0.0])
     rhythm = terms.FeetRhythm(feet=("FL", "FR", "RL", "RR"))
     phase = 1.3 * math.sqrt(step.scale.height / step.scale.gravity)  # 0.2 s on the Go2
     within = math.floor(phase / step.control_timestep)  # steps whose phase time pays
