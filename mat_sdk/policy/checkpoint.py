@@ -8,7 +8,6 @@ hold no code.
 from __future__ import annotations
 
 import errno
-import numbers
 import os
 import re
 import shutil
@@ -23,6 +22,7 @@ import torch
 
 from mat_runtime import zoo
 from mat_sdk.common import files
+from mat_sdk.envs.core.checks import is_real, short
 from mat_sdk.envs.core.faults import as_mapping
 from mat_sdk.policy.config import RESUMABLE, TrainConfig
 
@@ -201,8 +201,8 @@ def _restore(payload, policy, params, optimizer, collectors, value_norm, seed) -
     optimizer.load_state_dict(params.flat_state(payload["optimizer"]))
     for group in optimizer.param_groups:  # an adaptive rate is the file's own: bound it
         lr = group["lr"]
-        if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr <= 1:
-            raise ValueError(f"the optimizer's learning rate must be in (0, 1], got {lr!r}")
+        if not (is_real(lr) and 0 < lr <= 1):
+            raise ValueError(f"the optimizer's learning rate must be in (0, 1], got {short(lr)}")
     progress = Progress(int(payload["progress"]["steps"]), int(payload["progress"]["updates"]))
     saved_on = payload["rng"].get("device", "cpu")  # older checkpoints: cpu only
     if saved_on == collector.device.type:

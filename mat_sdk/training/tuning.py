@@ -198,10 +198,9 @@ def measure(
         size = rows // count
         minibatches = [torch.arange(i * size, (i + 1) * size) for i in range(count)]
         measurements.update_on(trainer, batch, minibatches)
-        ppo = trainer.config.ppo
-        run_steps = (
-            None if steps is None else -(-steps // ppo.steps_per_update) * (ppo.ppo_epochs * count)
-        )  # the run's optimizer steps
+        ppo = trainer.config.ppo  # the run's optimizer steps: its updates' epochs x minibatches
+        updates = None if steps is None else trainer.planned_steps(steps) // ppo.steps_per_update
+        run_steps = None if updates is None else updates * ppo.ppo_epochs * count
         chosen = base
         if "update_workers" not in fixed:
             most = min(MAX_UPDATE_WORKERS, free_cores, size - 1)
