@@ -8,6 +8,7 @@ from helpers import mat
 
 from mat_sdk.common.processes import usable_cores
 from mat_sdk.policy import checkpoint
+from mat_sdk.policy.config import TrainConfig
 from mat_sdk.training.tuning import TUNE_FROM_STEPS, TUNED, TUNING_NAME, amortized, wanted
 
 # a run of seconds; compile stays off (given), so only update workers and flushing are measured
@@ -15,6 +16,11 @@ TINY = [
     "coordination-3", "--steps", "200", "--num-envs", "4", "--set", "rollout_length=25",
     "--set", "num_minibatches=2", "--set", "ppo_epochs=2", "--set", "compile=false", "--quiet",
 ]  # fmt: skip
+
+
+def _trained_with(path) -> dict:
+    """A checkpoint's training settings by their flat names."""
+    return TrainConfig.from_dict(checkpoint.load(path)["config"]["train"]).options()
 
 
 def _flags(chosen: dict) -> list[str]:
@@ -55,7 +61,7 @@ def test_a_tuned_run_equals_a_run_given_the_chosen_settings(tmp_path):
         ) == 1
     last = [row for row in record["measured"] if row["round"] == max(rounds) and row["chosen"]]
     assert f"flush_denormal={json.dumps(chosen['flush_denormal'])}" in last[0]["candidate"]
-    train = checkpoint.load(tmp_path / "tuned" / "checkpoint.pt")["config"]["train"]
+    train = _trained_with(tmp_path / "tuned" / "checkpoint.pt")
     assert {name: train[name] for name in chosen} == chosen and train["compile"] is False
 
     mat("train", *TINY, *_flags(chosen), "--no-tune", "--out", str(tmp_path / "given"))
@@ -73,7 +79,7 @@ def test_a_seed_set_is_tuned_once_and_a_rerun_keeps_the_settings(tmp_path):
     chosen = json.loads((out / TUNING_NAME).read_text())["chosen"]
     for seed in (0, 1):
         assert not (out / f"seed_{seed}" / TUNING_NAME).exists()  # measured once, for all
-        train = checkpoint.load(out / f"seed_{seed}" / "checkpoint.pt")["config"]["train"]
+        train = _trained_with(out / f"seed_{seed}" / "checkpoint.pt")
         assert {name: train[name] for name in chosen} == chosen
 
     again = mat("train", *TINY, "--steps", "100", "--seeds", "2", "--tune", "--out", str(out))
