@@ -378,3 +378,91 @@ def test_stand_still_costs_joints_away_from_the_start_pose_at_a_zero_command_onl
     moving.reset(seed=0)
     moving.advance(np.full((4, 3), 0.8))
     assert moving.term_values()[index] == 0.0  # told to move: no cost
+
+
+def test_a_command_curriculum_widens_from_its_first_ranges_to_the_commands_own():
+    curriculum = terms.CommandCurriculum(vx=(0.3, 1.0), levels=10)
+    command = terms.VelocityCommand(
+        vx=(-0.5, 1.0), vy=(-0.5, 0.5), yaw_rate=(-1.0, 1.0), curriculum=curriculum
+    )
+    np.testing.assert_allclose(command.ranges(0), [[0.3, 1.0], [0, 0], [0, 0]])
+    np.testing.assert_allclose(command.ranges(5), [[-0.1, 1.0], [-0.25, 0.25], [-0.5, 0.5]])
+    np.testing.assert_allclose(command.ranges(10), command.ranges())  # the command's own
+    random = np.random.RandomState(0)
+    first = np.array([command.sample(random, level=0) for _ in range(200)])
+    assert first[:, 0].min() >= 0.3 and (first[:, 1:] == 0).all()
+
+
+def _free_box() -> tuple[mujoco.MjModel, mujoco.MjData]:
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body name="base"><freejoint/><geom size="0.1"/></body>'
+        "</worldbody></mujoco>"
+    )
+    return model, mujoco.MjData(model)
+
+
+def test_curriculum_levels_rise_when_commands_are_followed_and_drop_after_a_fall():
+    from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
+    from mat_sdk.envs.mujoco.trunk import Trunk
+
+    model, data = _free_box()
+    mujoco.mj_kinematics(model, data)  # level, facing +x: base frame = world frame
+    curriculum = terms.CommandCurriculum(levels=2, tolerance=(0.1, 0.2))
+    progress = CurriculumProgress(curriculum, Trunk(model), settle_steps=5)
+    command = np.array([0.5, 0.0, 0.3])
+
+    def follow(vx, yaw_rate, settle=(0.0, 0.0), steps=20):
+        for velocity in [settle] * 5 + [(vx, yaw_rate)] * steps:
+            data.qvel[0], data.qvel[5] = velocity
+            progress.follow(data, command)
+
+    follow(0.45, 0.3, settle=(-3.0, 3.0))  # the first second's errors are not counted
+    progress.judge(fell=False)
+    assert progress.level == 1 and progress.share == 0.5
+    follow(0.3, 0.3)  # 0.2 m/s off: no higher
+    progress.judge(fell=False)
+    follow(0.5, 0.0)  # 0.3 rad/s off: no higher
+    progress.judge(fell=False)
+    assert progress.level == 1
+    follow(0.5, 0.3, steps=2)  # cut short: under a second measured, not judged
+    progress.judge(fell=False)
+    assert progress.level == 1
+    follow(0.5, 0.3)
+    progress.judge(fell=True)  # however well it went until then
+    assert progress.level == 0
+    for _ in range(3):
+        follow(0.5, 0.3)
+        progress.judge(fell=False)
+    assert progress.level == 2  # the top: the command's own ranges
+    follow(0.5, 0.3, steps=7)
+    saved = progress.get_state()
+    restored = CurriculumProgress(curriculum, Trunk(model), settle_steps=5)
+    restored.set_state(saved)
+    assert restored.get_state()["steps"] == 12 and restored.level == 2
+    with pytest.raises(ValueError, match=r"curriculum level must lie in 0..2, got 3"):
+        restored.set_state({**saved, "level": 3})
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"levels": 0}, r"CommandCurriculum.levels must be a whole number in 1..1000, got 0"),
+        ({"tolerance": (0.1, -1)}, r"CommandCurriculum.tolerance must be two numbers > 0"),
+        ({"vx": (1.0, 0.0)}, r"CommandCurriculum.vx"),
+    ],
+)
+def test_a_curriculum_setting_out_of_range_is_refused_naming_it(options, message):
+    with pytest.raises(ValueError, match=message):
+        terms.CommandCurriculum(**options)
+
+
+def test_joystick_training_starts_at_the_curriculums_first_level_and_logs_it(tmp_path):
+    with Trainer("quadrupeds:go2_joystick", out_dir=tmp_path, **TINY) as trainer:
+        trainer.learn(TINY["num_envs"] * TINY["rollout_length"], progress_bar=False)
+        states = [state["team"]["task"] for state in trainer.env.get_state()]
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [float(row["command_level"]) for row in rows] == [0.0]  # no command judged yet
+    for state in states:  # WALK's forward band, or standing; level 0
+        command = state["command"]
+        assert state["curriculum"]["level"] == 0
+        assert (command == 0).all() or (0.3 <= command[0] <= 1.0 and (command[1:] == 0).all())

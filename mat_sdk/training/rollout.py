@@ -61,6 +61,8 @@ class Trajectory:
     # the reward of each step by named term, weighted [T, E, terms] (tasks built from terms)
     reward_terms: Tensor | None = None
     term_names: tuple[str, ...] = ()
+    # where each env's command curriculum stands at the rollout's end [1, E] (else None)
+    command_level: Tensor | None = None
 
     def rows(self, std_floor: float = 0.0) -> Rows:
         """The update's rows [T * E, ...] of every per-step tensor the update reads, with the
@@ -94,6 +96,8 @@ class Trajectory:
             terms = {
                 f"reward/{name}": mean for name, mean in zip(self.term_names, means, strict=True)
             }
+        if self.command_level is not None:  # is the curriculum moving?
+            terms["command_level"] = float(self.command_level.mean())
         return {
             "advantage_std": float(advantages.std()),
             # returns - values are the advantages
@@ -252,6 +256,7 @@ class RolloutCollector:
                 final = self.observe(info["final_obs"][truncated])
                 bootstrap[t, torch.as_tensor(truncated, device=device)] = self.policy.values(final)
             finished += info["episode_return"][info["done"]].tolist()
+            levels = info["command_level"]
             self.next_obs = next_obs
             if t < T - 1:
                 raw.append(next_obs)
@@ -270,6 +275,9 @@ class RolloutCollector:
             raw_obs=np.concatenate(raw) if keep_raw else None,
             reward_terms=torch.as_tensor(np.stack(terms), dtype=torch.float32) if terms else None,
             term_names=tuple(env.reward_terms),
+            command_level=None
+            if np.isnan(levels).all()
+            else torch.as_tensor(levels, dtype=torch.float32).view(1, E),
         )
 
     def _flags(self, flags: np.ndarray) -> Tensor:

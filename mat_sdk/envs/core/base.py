@@ -245,6 +245,11 @@ class ArrayTeam:
         rad/s); NaN for other envs."""
         return np.full(3, math.nan)
 
+    def command_level(self) -> float:
+        """Where a command curriculum stands (`terms.CommandCurriculum`): 0 at its first
+        ranges, 1 at the command's own; NaN for envs without one."""
+        return math.nan
+
     def render(self, height: int = 240, width: int = 320, camera_id: int = 0) -> np.ndarray:
         """An RGB frame `[height, width, 3]`; the physics envs override this."""
         raise RuntimeError(f"{self.env_id} has no picture to render; record a robot's episode")

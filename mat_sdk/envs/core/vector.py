@@ -34,6 +34,7 @@ _FIELDS = {  # name: (shape after [num_envs], dtype)
     "episode_travel": ((), np.float64),  # a floating base's forward distance (else NaN)
     "episode_tracking": (("track",), np.float64),  # its mean vx, vy, yaw rate (`tracking`)
     "reward_terms": (("terms",), np.float64),  # the step's reward by named term (`reward_terms`)
+    "command_level": ((), np.float64),  # where a command curriculum stands (`command_level`)
     # teams with masks (`ArrayTeam.masks`): who is in the episode, and what each may choose
     "active": (("n",), np.float32),
     "left": (("n",), np.bool_),
@@ -91,6 +92,7 @@ class _EnvSlice:
             b.reward[i], b.terminated[i], b.truncated[i] = reward, terminated, truncated
             if b.sizes["terms"]:
                 b.reward_terms[i] = team.term_values()
+            b.command_level[i] = team.command_level()
             if terminated or truncated:
                 b.final_obs[i] = obs
                 b.episode_return[i], b.episode_length[i] = self._returns[k], self._lengths[k]
@@ -241,6 +243,7 @@ class VecTeam:
             "episode_travel": b.episode_travel.copy(),
             "episode_tracking": b.episode_tracking.copy(),
             "reward_terms": b.reward_terms.copy(),
+            "command_level": b.command_level.copy(),
             "done": done,
         }
         if self.masks:

@@ -9,7 +9,8 @@ never more than `reset_noise` times half its range, and stays inside the range; 
 joint (a floating base) moves horizontally and turns only when asked (`root_noise`), its
 quaternion staying a unit rotation; velocities of hinges and slides get normal noise of the
 same scale. The reward is the user's function of the physics, or a list of `terms`; so is
-the termination. A `VelocityCommand` is sampled per episode.
+the termination. A `VelocityCommand` is sampled per episode (or every few seconds), from
+ranges that widen with the copy's curriculum level when it has one (`curriculum.py`).
 
 Physics copies are compiled without visual assets (`compiler.discardvisual`): textures and
 visual meshes cost hundreds of MB per copy on a Menagerie model and no physics reads them.
@@ -29,8 +30,9 @@ from dm_control import mujoco as dm_mujoco
 from dm_control.rl import control
 from dm_control.suite import base
 
-from mat_sdk.envs.core.base import user_call
+from mat_sdk.envs.core.base import SETTLE_SECONDS, user_call
 from mat_sdk.envs.mujoco import terms
+from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
 from mat_sdk.envs.mujoco.trunk import Trunk, geom_ids
 
 HOME = "home"  # the keyframe a start defaults to, by Menagerie's convention
@@ -220,7 +222,7 @@ class ModelTask(base.Task):
     def __init__(self, recipe: ModelEnvironment, physics, random):
         super().__init__(random=random)
         self.recipe = recipe
-        model = physics.model.ptr
+        model, self._data = physics.model.ptr, physics.data.ptr
         check_terms(recipe.reward, recipe.terminate, model, recipe.commands)
         self.start_qpos, self.start_ctrl = start_pose(model, recipe.keyframe, recipe.start)
         self._noise_scale = _noise_scales(model, recipe.reset_noise)
@@ -231,6 +233,12 @@ class ModelTask(base.Task):
         # control steps between commands (0: one per episode), and since the last one
         self._command_period = 0 if every is None else max(1, round(every / control_timestep))
         self._command_age = 0
+        self.curriculum: CurriculumProgress | None = None  # `CommandCurriculum`'s level
+        if recipe.commands is not None and recipe.commands.curriculum is not None:
+            self.curriculum = CurriculumProgress(
+                recipe.commands.curriculum, Trunk(model), round(SETTLE_SECONDS / control_timestep)
+            )
+        self._fell = False  # the last step ended the episode (the curriculum's judgement)
         # per actuator, in [-1, 1]: this step's action and the step's before
         self.action, self.previous_action = np.zeros(model.nu), np.zeros(model.nu)
         uses_terms = not callable(recipe.reward) or (
@@ -268,9 +276,12 @@ class ModelTask(base.Task):
         if self._step is not None:
             self._step.memory.clear()
         if self.recipe.commands is not None:
-            command = self.recipe.commands.sample(self.random)
+            if self.curriculum is not None and self.fixed_command is None:
+                self.curriculum.judge(fell=self._fell)
+            command = self._new_command()
             self.command[:] = command if self.fixed_command is None else self.fixed_command
         self._command_age = 0
+        self._fell = False
         super().initialize_episode(physics)
 
     def _turn_free_joints(self, model, data) -> None:
@@ -303,11 +314,21 @@ class ModelTask(base.Task):
         """After a step's reward, before its observation: a new command where its period
         has passed (`VelocityCommand.resample_seconds`), so the step is rewarded for the
         command its action followed and the next action sees the new one."""
-        if self._command_period and self.fixed_command is None:
+        if self.fixed_command is not None:
+            return
+        if self.curriculum is not None:
+            self.curriculum.follow(self._data, self.command)
+        if self._command_period:
             self._command_age += 1
             if self._command_age >= self._command_period:
-                self.command[:] = self.recipe.commands.sample(self.random)
+                if self.curriculum is not None:
+                    self.curriculum.judge(fell=False)
+                self.command[:] = self._new_command()
                 self._command_age = 0
+
+    def _new_command(self) -> np.ndarray:
+        level = None if self.curriculum is None else self.curriculum.level
+        return self.recipe.commands.sample(self.random, level)
 
     def set_command(self, command) -> None:
         """Hold the command at `command` (vx, vy, yaw_rate) in every episode (evaluation)."""
@@ -318,15 +339,25 @@ class ModelTask(base.Task):
 
     def get_state(self) -> dict[str, Any]:
         memory = {} if self._step is None else self._step.memory
-        return {"command": self.command.copy(), "action": self.action.copy(),
-                "previous_action": self.previous_action.copy(),
-                "command_age": self._command_age,
-                "memory": {key: value.copy() for key, value in memory.items()}}  # fmt: skip
+        state = {
+            "command": self.command.copy(),
+            "action": self.action.copy(),
+            "previous_action": self.previous_action.copy(),
+            "command_age": self._command_age,
+            "fell": self._fell,
+            "memory": {key: value.copy() for key, value in memory.items()},
+        }
+        if self.curriculum is not None:
+            state["curriculum"] = self.curriculum.get_state()
+        return state
 
     def set_state(self, state: dict[str, Any]) -> None:
         for name in ("command", "action", "previous_action"):
             getattr(self, name)[:] = state[name]
         self._command_age = int(state.get("command_age", 0))  # absent before resampling
+        self._fell = bool(state.get("fell", False))
+        if self.curriculum is not None and "curriculum" in state:
+            self.curriculum.set_state(state["curriculum"])
         if self._step is not None:
             self._step.memory.clear()
             self._step.memory.update(
@@ -368,6 +399,7 @@ class ModelTask(base.Task):
             ended = user_call(terminate, "terminate", physics)
         else:
             ended = any(term.ends(self._step) for term in terminate)
+        self._fell = bool(ended)
         return 0.0 if ended else None
 
 

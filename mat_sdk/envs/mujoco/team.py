@@ -225,6 +225,10 @@ class RobotTeam(ArrayTeam):
         count = self._tracked[3]
         return self._tracked[:3] / count if count else np.full(3, math.nan)
 
+    def command_level(self) -> float:
+        curriculum = getattr(self._task, "curriculum", None)
+        return math.nan if curriculum is None else curriculum.share
+
     def _track(self) -> None:
         """Add this step's velocity in the heading's frame to `tracking`'s sums."""
         base, data = self._base, self._data

@@ -97,6 +97,42 @@ class Step:
 
 
 @dataclass(frozen=True)
+class CommandCurriculum:
+    """Commands that widen as the robot learns to follow them (legged_gym's command
+    curriculum, kept per env copy). At level 0 each of vx, vy and yaw rate is drawn from
+    this curriculum's range, at level `levels` from the command's own, and in between from
+    ranges that widen linearly. A command followed to within `tolerance` (the mean error
+    after its first second: m/s of vx and vy together, rad/s of the yaw rate) moves the
+    copy up a level, a fall moves it down one: every new command is a small step from
+    commands the policy already follows. The levels are part of an env copy's state, so
+    a resumed run goes on from where it was."""
+
+    vx: tuple[float, float] = (0.0, 0.0)
+    vy: tuple[float, float] = (0.0, 0.0)
+    yaw_rate: tuple[float, float] = (0.0, 0.0)
+    levels: int = 10
+    tolerance: tuple[float, float] = (0.2, 0.3)  # m/s, rad/s
+
+    def __post_init__(self):
+        for name in VelocityCommand.names:
+            object.__setattr__(
+                self, name, finite_range(getattr(self, name), f"CommandCurriculum.{name}")
+            )
+        if not (isinstance(self.levels, int) and 1 <= self.levels <= 1000):
+            raise ValueError(
+                f"CommandCurriculum.levels must be a whole number in 1..1000, got "
+                f"{short(self.levels)}"
+            )
+        tolerance = tuple(self.tolerance) if isinstance(self.tolerance, tuple | list) else ()
+        if len(tolerance) != 2 or not all(is_real(v) and 0 < v < math.inf for v in tolerance):
+            raise ValueError(
+                "CommandCurriculum.tolerance must be two numbers > 0 (m/s, rad/s), got "
+                f"{short(self.tolerance)}"
+            )
+        object.__setattr__(self, "tolerance", tuple(float(v) for v in tolerance))
+
+
+@dataclass(frozen=True)
 class VelocityCommand:
     """A base velocity to follow, sampled from the task's seeded stream: forward `vx` and
     sideways `vy` (m/s, in the base's frame) and `yaw_rate` (rad/s), each uniform in its
@@ -111,6 +147,7 @@ class VelocityCommand:
     yaw_rate: tuple[float, float] = (0.0, 0.0)
     standing: float = 0.0
     resample_seconds: float | None = None
+    curriculum: CommandCurriculum | None = None  # None: the whole ranges from the start
     names = ("vx", "vy", "yaw_rate")
 
     LIMIT = 10.0  # m/s and rad/s: far past any legged robot's, so a typo fails loudly
@@ -134,9 +171,25 @@ class VelocityCommand:
                 f"VelocityCommand.resample_seconds must be a number of seconds > 0 or None, "
                 f"got {short(every)}"
             )
+        if self.curriculum is not None and not isinstance(self.curriculum, CommandCurriculum):
+            raise ValueError(
+                f"VelocityCommand.curriculum must be a CommandCurriculum or None, got "
+                f"{short(self.curriculum)}"
+            )
 
-    def sample(self, random: np.random.RandomState) -> np.ndarray:
-        low, high = np.array([getattr(self, name) for name in self.names]).T
+    def ranges(self, level: int | None = None) -> np.ndarray:
+        """[3, 2]: the (low, high) of vx, vy and yaw rate at a curriculum `level` (None, or
+        no curriculum: the command's own)."""
+        own = np.array([getattr(self, name) for name in self.names])
+        if self.curriculum is None or level is None:
+            return own
+        first = np.array([getattr(self.curriculum, name) for name in self.names])
+        return first + (own - first) * (
+            min(max(level, 0), self.curriculum.levels) / self.curriculum.levels
+        )
+
+    def sample(self, random: np.random.RandomState, level: int | None = None) -> np.ndarray:
+        low, high = self.ranges(level).T
         command = low + (high - low) * random.uniform(size=3)
         if self.standing and random.uniform() < self.standing:  # no draw without standing
             command[:] = 0.0

@@ -165,7 +165,14 @@ JOYSTICK = replace(
         terms.StandStill(0.5),
     ),
     commands=terms.VelocityCommand(
-        vx=(-0.5, 1.0), vy=(-0.5, 0.5), yaw_rate=(-1.0, 1.0), standing=0.1, resample_seconds=5.0
+        vx=(-0.5, 1.0),
+        vy=(-0.5, 0.5),
+        yaw_rate=(-1.0, 1.0),
+        standing=0.1,
+        resample_seconds=5.0,
+        # from WALK's forward band, each env copy widening towards the whole ranges as it
+        # follows its commands: a gait first, then every direction as a small step from it
+        curriculum=terms.CommandCurriculum(vx=WALK.commands.vx, levels=10),
     ),
     recipe=replace(WALK.recipe, train_episode_limit=None),  # 20 s: commands change within
 )
