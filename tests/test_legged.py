@@ -401,7 +401,7 @@ def _free_box() -> tuple[mujoco.MjModel, mujoco.MjData]:
     return model, mujoco.MjData(model)
 
 
-def test_curriculum_levels_rise_when_commands_are_followed_and_drop_after_a_fall():
+def test_curriculum_levels_rise_when_commands_are_followed_and_drop_when_missed_or_fallen():
     from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
     from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -419,9 +419,15 @@ def test_curriculum_levels_rise_when_commands_are_followed_and_drop_after_a_fall
     follow(0.45, 0.3, settle=(-3.0, 3.0))  # the first second's errors are not counted
     progress.judge(fell=False)
     assert progress.level == 1 and progress.share == 0.5
-    follow(0.3, 0.3)  # 0.2 m/s off: no higher
+    follow(0.35, 0.3)  # 0.15 m/s off: neither up nor down
     progress.judge(fell=False)
-    follow(0.5, 0.0)  # 0.3 rad/s off: no higher
+    follow(0.5, 0.0)  # 0.3 rad/s off: neither
+    progress.judge(fell=False)
+    assert progress.level == 1
+    follow(0.0, 0.3)  # standing where it should walk: 0.5 m/s off, over twice the tolerance
+    progress.judge(fell=False)
+    assert progress.level == 0
+    follow(0.5, 0.3)
     progress.judge(fell=False)
     assert progress.level == 1
     follow(0.5, 0.3, steps=2)  # cut short: under a second measured, not judged

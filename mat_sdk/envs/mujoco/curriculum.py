@@ -16,9 +16,9 @@ from mat_sdk.envs.mujoco.trunk import Trunk
 class CurriculumProgress:
     """Level 0 at first. `follow` adds each step's tracking error (after the command's first
     `settle_steps`, while the robot gets going); `judge`, when the command ends, moves the
-    level: down one after a fall, up one when both mean errors are within tolerance (a
-    command cut short by the episode's time limit is judged if a second of it was
-    measured)."""
+    level: up one when both mean errors are within tolerance, down one after a fall or when
+    either error is over twice its tolerance (a command cut short by the episode's time
+    limit is judged if a second of it was measured)."""
 
     def __init__(self, curriculum: CommandCurriculum, trunk: Trunk, settle_steps: int):
         self.curriculum, self.trunk, self.settle_steps = curriculum, trunk, settle_steps
@@ -43,13 +43,15 @@ class CurriculumProgress:
 
     def judge(self, fell: bool) -> None:
         """The command ended (a new one, or the episode's end): move the level, start over."""
-        counted = self._errors[2]
-        if fell:
-            self.level = max(0, self.level - 1)
-        elif counted >= max(1, self.settle_steps):  # a second of it, at least
+        counted, tolerance = self._errors[2], self.curriculum.tolerance
+        step = -1 if fell else 0
+        if not fell and counted >= max(1, self.settle_steps):  # a second of it, at least
             linear, yaw = self._errors[:2] / counted
-            if linear <= self.curriculum.tolerance[0] and yaw <= self.curriculum.tolerance[1]:
-                self.level = min(self.curriculum.levels, self.level + 1)
+            if linear <= tolerance[0] and yaw <= tolerance[1]:
+                step = 1
+            elif linear > 2 * tolerance[0] or yaw > 2 * tolerance[1]:
+                step = -1  # missed: else successes alone would climb to the top
+        self.level = min(max(self.level + step, 0), self.curriculum.levels)
         self._steps = 0
         self._errors[:] = 0.0
 

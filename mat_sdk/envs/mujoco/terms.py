@@ -103,9 +103,10 @@ class CommandCurriculum:
     this curriculum's range, at level `levels` from the command's own, and in between from
     ranges that widen linearly. A command followed to within `tolerance` (the mean error
     after its first second: m/s of vx and vy together, rad/s of the yaw rate) moves the
-    copy up a level, a fall moves it down one: every new command is a small step from
-    commands the policy already follows. The levels are part of an env copy's state, so
-    a resumed run goes on from where it was."""
+    copy up a level; a fall, or a command missed by more than twice the tolerance, moves it
+    down one. Every new command is a small step from commands the policy already follows,
+    and the level settles where the policy follows about as many commands as it misses.
+    The levels are part of an env copy's state, so a resumed run goes on from where it was."""
 
     vx: tuple[float, float] = (0.0, 0.0)
     vy: tuple[float, float] = (0.0, 0.0)
