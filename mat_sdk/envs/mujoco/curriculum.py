@@ -65,5 +65,11 @@ class CurriculumProgress:
                 f"a saved command curriculum level must lie in 0..{self.curriculum.levels}, "
                 f"got {level}"
             )
+        errors = np.asarray(state["errors"], dtype=np.float64)
+        if errors.shape != (3,) or not (np.isfinite(errors).all() and (errors >= 0).all()):
+            raise ValueError(
+                "saved command curriculum errors must be three finite numbers >= 0, got "
+                f"{np.array2string(errors.ravel()[:3])[:60]}"
+            )
         self.level, self._steps = level, max(0, int(state["steps"]))
-        self._errors[:] = np.asarray(state["errors"], dtype=np.float64)
+        self._errors[:] = errors
