@@ -145,23 +145,6 @@ def test_pushes_kick_the_base_and_start_noise_moves_the_joints():
     assert 0 < shift.max() <= 0.05 + 1e-12
 
 
-def test_short_episodes_meet_the_pushes_long_ones_do():
-    """The first push comes after a random share of an interval, not a whole one: with the
-    default 5-10 s between pushes, a 5 s training episode is pushed about as often as any 5 s
-    of a long one (a full first interval pushed no 5 s episode at all)."""
-    team = envs.make_team(GO2, seed=3, randomize=_only(push=0.5))
-    first = []
-    for episode in range(200):
-        team.reset(seed=episode)
-        first.append(team.get_state()["randomizer"]["next_push"])
-    first = np.array(first)
-    assert first.min() > 0 and first.max() < 10.0
-    assert 0.55 < np.mean(first < 5.0) < 0.85  # ln 2 = 0.69 for intervals uniform in 5-10 s
-    quiet = envs.make_team(GO2, seed=3, randomize=_only(push=None, mass=[0.9, 1.1]))
-    quiet.reset()
-    assert quiet.get_state()["randomizer"]["next_push"] == float("inf")
-
-
 def test_a_randomized_episode_resumes_exactly_from_its_state():
     team = envs.make_team(GO2, seed=2, randomize=True)
     rng = np.random.default_rng(0)

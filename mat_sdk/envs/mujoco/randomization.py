@@ -354,12 +354,7 @@ class Randomizer:
         self.draws = draws
         self._apply(draws)
         self._pending = []
-        # the first push after a random share of an interval: every second of an episode is
-        # pushed as often as any other, so 5 s training episodes meet the pushes that 20 s
-        # evaluations do (a full first interval of 5-10 s pushed none of them)
         self._next_push = self._push_interval(rng)
-        if self._next_push != math.inf:
-            self._next_push *= rng.random()
 
     def _apply(self, draws: Draws) -> None:
         model, nominal = self._model, self._nominal
