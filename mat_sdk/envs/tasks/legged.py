@@ -137,7 +137,8 @@ WALK = LeggedTask(
         max_grad_norm=1.0,
         # 5 s training episodes (evaluations keep the task's 20 s): a policy that walks
         # still fell in the first second of 5-20 % of its episodes, a start it had met in
-        # about one step in a thousand of its training
+        # about one step in a thousand of its training. No push (every 5-10 s) lands in
+        # them: pushed in training too, the policies took the evaluations' pushes no better
         train_episode_limit=250,
         # the machine's fastest rollout and update settings (both cores, where there are
         # two); returns under random commands select no better policy than the last, so no
