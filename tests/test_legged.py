@@ -447,6 +447,12 @@ def test_curriculum_levels_rise_when_commands_are_followed_and_drop_when_missed_
     assert restored.get_state()["steps"] == 12 and restored.level == 2
     with pytest.raises(ValueError, match=r"curriculum level must lie in 0..2, got 3"):
         restored.set_state({**saved, "level": 3})
+    for level in (np.nan, 1.5, "two"):
+        with pytest.raises(ValueError, match=r"curriculum level must lie in 0..2, got"):
+            restored.set_state({**saved, "level": level})
+    for steps in (-1, np.inf, 2.5):
+        with pytest.raises(ValueError, match=r"curriculum step count must be a whole number"):
+            restored.set_state({**saved, "steps": steps})
     with pytest.raises(ValueError, match=r"curriculum errors must be three finite numbers >= 0"):
         restored.set_state({**saved, "errors": [np.nan, 0.0, 1.0]})
     assert restored.level == 2 and restored.get_state()["steps"] == 12  # nothing taken from it

@@ -59,11 +59,16 @@ class CurriculumProgress:
         return {"level": self.level, "steps": self._steps, "errors": self._errors.copy()}
 
     def set_state(self, state: dict[str, Any]) -> None:
-        level = int(state["level"])
-        if not 0 <= level <= self.curriculum.levels:
+        level, steps = _whole(state["level"]), _whole(state["steps"])
+        if level is None or not 0 <= level <= self.curriculum.levels:
             raise ValueError(
                 f"a saved command curriculum level must lie in 0..{self.curriculum.levels}, "
-                f"got {level}"
+                f"got {str(state['level'])[:60]}"
+            )
+        if steps is None or steps < 0:
+            raise ValueError(
+                "a saved command curriculum step count must be a whole number >= 0, got "
+                f"{str(state['steps'])[:60]}"
             )
         errors = np.asarray(state["errors"], dtype=np.float64)
         if errors.shape != (3,) or not (np.isfinite(errors).all() and (errors >= 0).all()):
@@ -71,5 +76,14 @@ class CurriculumProgress:
                 "saved command curriculum errors must be three finite numbers >= 0, got "
                 f"{np.array2string(errors.ravel()[:3])[:60]}"
             )
-        self.level, self._steps = level, max(0, int(state["steps"]))
+        self.level, self._steps = level, steps
         self._errors[:] = errors
+
+
+def _whole(value: Any) -> int | None:
+    """`value` as an int when it is a whole number (a float of one included), else None."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return int(number) if math.isfinite(number) and number.is_integer() else None
