@@ -164,6 +164,9 @@ def test_a_randomized_episode_resumes_exactly_from_its_state():
     tampered = {**state, "randomizer": {**state["randomizer"], "draws": {**draws, "gravity": 2}}}
     with pytest.raises(ValueError, match=r"unknown factor\(s\) \['gravity'\]"):
         other.set_state(tampered)
+    unpushable = {**state, "randomizer": {**state["randomizer"], "next_push": float("nan")}}
+    with pytest.raises(ValueError, match=r"next push time must be a number, got nan"):
+        other.set_state(unpushable)
 
 
 def test_same_seed_same_randomized_episodes_at_any_worker_count():

@@ -439,10 +439,13 @@ class Randomizer:
         }
 
     def set_state(self, state: Mapping[str, Any]) -> None:
+        next_push = float(state["next_push"])
+        if math.isnan(next_push):  # NaN would push on every step
+            raise ValueError("a saved randomization's next push time must be a number, got nan")
         self.draws = Draws.from_state(state["draws"])
         self._apply(self.draws)
         self._pending = [np.asarray(p, dtype=np.float64) for p in state["pending"]]
-        self._next_push = float(state["next_push"])
+        self._next_push = next_push
 
 
 SWEEPABLE = ("friction", "mass", "payload", "payload_share", "com", "strength", "damping",
