@@ -169,6 +169,42 @@ def test_a_randomized_episode_resumes_exactly_from_its_state():
         other.set_state(unpushable)
 
 
+def test_a_saved_robot_this_randomization_could_not_draw_is_refused_untouched():
+    team = envs.make_team(GO2, seed=2, randomize=_only(mass=(0.9, 1.1), latency=(1, 1)))
+    team.reset()
+    team.advance(np.zeros((4, 3)))
+    saved = team.get_state()["randomizer"]
+    other = envs.make_team(GO2, seed=3, randomize=_only(mass=(0.9, 1.1), latency=(1, 1)))
+    other.reset()
+    before = other.get_state()
+    masses = other.physics.model.body_mass.copy()
+    mass = saved["draws"]["mass"]
+    cases = {
+        r"mass must be 14 numbers within \[0.9, 1.1\], got \[.*e\+0[89]": {"mass": mass * 1e9},
+        r"mass must be 14 numbers within .* \(shape \(3,\)\)": {"mass": mass[:3]},
+        r"mass must be .* got \[nan": {"mass": np.full_like(mass, np.nan)},
+        r"draws friction, which this one leaves off": {"friction": np.ones(1)},
+        r"latency must lie in 1..1 control steps, got 1000000": {"latency": 1e6},
+    }
+    for message, change in cases.items():
+        state = {**before, "randomizer": {**saved, "draws": {**saved["draws"], **change}}}
+        with pytest.raises(ValueError, match=message):
+            other.set_state(state)
+    late = saved["pending"]
+    assert len(late) == 1
+    for message, pending in {
+        r"holds 3 late actions; its latency of 1 control steps holds 0 or 1": late * 3,
+        r"late actions must be of shape \(12,\) within \[-1, 1\], got shape \(12,\)":
+            [late[0] + 5.0],
+        r"late actions must be of shape \(12,\) within \[-1, 1\], got shape \(3,\)":
+            [late[0][:3]],
+    }.items():  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            other.set_state({**before, "randomizer": {**saved, "pending": pending}})
+    np.testing.assert_array_equal(other.physics.model.body_mass, masses)  # nothing applied
+    other.set_state({**before, "randomizer": saved})  # what it drew itself is taken
+
+
 def test_same_seed_same_randomized_episodes_at_any_worker_count():
     def run(workers):
         with envs.make_vec(GO2, num_envs=3, workers=workers, seed=5, episode_limit=15,

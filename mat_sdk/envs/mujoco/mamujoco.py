@@ -154,6 +154,7 @@ class MaMuJoCoTeam(ArrayTeam):
             self._randomizer = Randomizer(
                 self.randomization, physics.model, physics.data, self.control_timestep,
                 [("obs", self._real * self._raw_obs_width)], env_id,
+                action_shape=self._action_mask.shape,
             )  # fmt: skip
 
     def _padding(self, pad_agents: int | None) -> list[str]:

@@ -247,9 +247,11 @@ class Randomizer:
         control_timestep: float,
         signals: Sequence[tuple[str, int]],
         env_id: str,
+        action_shape: tuple[int, ...],
     ):
         self.config, self._model, self._data = config, model, data
         self._dt = control_timestep
+        self._action_shape = tuple(action_shape)  # what `delay` holds back
         try:  # a floating base: where payload, centre of mass and pushes act
             trunk = Trunk(model)
             self._base, self._base_dof = trunk.body, trunk.qvel
@@ -439,13 +441,82 @@ class Randomizer:
         }
 
     def set_state(self, state: Mapping[str, Any]) -> None:
+        """An episode's robot as `get_state` saved it, refused unless this randomization could
+        have drawn it: every value is checked before any of the model is touched."""
         next_push = float(state["next_push"])
         if math.isnan(next_push):  # NaN would push on every step
             raise ValueError("a saved randomization's next push time must be a number, got nan")
-        self.draws = Draws.from_state(state["draws"])
-        self._apply(self.draws)
-        self._pending = [np.asarray(p, dtype=np.float64) for p in state["pending"]]
-        self._next_push = next_push
+        draws = Draws.from_state(state["draws"])
+        self._check_draws(draws)
+        pending = self._checked_pending(state["pending"], draws.latency)
+        self.draws = draws
+        self._apply(draws)
+        self._pending, self._next_push = pending, next_push
+
+    def _check_draws(self, draws: Draws) -> None:
+        """Each saved factor one this randomization draws, of the size and within the range
+        it draws: a scale of 1e9 or a latency of a million steps is a broken robot."""
+        config, model, joints = self.config, self._model, len(self._joint_dofs)
+        friction_count = model.ngeom if config.per_geom_friction else 1
+        expected = {  # factor -> (its range, its shape), for the factors this config draws
+            "friction": (config.friction, (friction_count,)),
+            "mass": (config.mass, (model.nbody,)),
+            "strength": (config.strength, (model.nu,)),
+            "damping": (config.damping, (joints,)),
+            "armature": (config.armature, (joints,)),
+        }
+        if self._base is not None:
+            expected["com"] = (None if config.com is None else (-config.com, config.com), (3,))
+            drawn = config.payload or config.payload_share  # as `new_episode` draws it
+            expected["payload"] = (self._payload_range() if drawn else None, ())
+        for name, (bounds, shape) in expected.items():
+            values = getattr(draws, name)
+            if values is None:
+                continue
+            values = np.asarray(values)
+            if bounds is None:
+                raise ValueError(f"a saved randomization draws {name}, which this one leaves off")
+            if values.shape != shape or not (
+                np.isfinite(values).all() and (values >= bounds[0]).all()
+                and (values <= bounds[1]).all()
+            ):  # fmt: skip
+                count = f"{shape[0]} numbers" if shape else "one number"
+                got = np.array2string(values.ravel()[:4], precision=3)
+                raise ValueError(
+                    f"a saved randomization's {name} must be {count} within "
+                    f"[{bounds[0]:g}, {bounds[1]:g}], got {got} (shape {values.shape})"
+                )
+        if self._base is None and (draws.com is not None or draws.payload is not None):
+            raise ValueError("a saved randomization moves a floating base this robot does not have")
+        latency = config.latency or (0, 0)
+        if not latency[0] <= draws.latency <= latency[1]:
+            raise ValueError(
+                f"a saved randomization's latency must lie in {latency[0]}..{latency[1]} control "
+                f"steps, got {draws.latency}"
+            )
+
+    def _payload_range(self) -> tuple[float, float]:
+        """The least and most kg `new_episode` adds to the base."""
+        kg = self.config.payload or (0.0, 0.0)
+        share = self.config.payload_share or (0.0, 0.0)
+        return kg[0] + share[0] * self.robot_mass, kg[1] + share[1] * self.robot_mass
+
+    def _checked_pending(self, saved: Sequence[Any], latency: int) -> list[np.ndarray]:
+        """The actions on their way to the motors: none yet, or `latency` of them, each an
+        action (within [-1, 1], the shape the env sends)."""
+        if len(saved) not in (0, latency):
+            raise ValueError(
+                f"a saved randomization holds {len(saved)} late actions; its latency of "
+                f"{latency} control steps holds 0 or {latency}"
+            )
+        pending = [np.asarray(p, dtype=np.float64) for p in saved]
+        for action in pending:
+            if action.shape != self._action_shape or not (np.abs(action) <= 1.0).all():
+                raise ValueError(
+                    f"a saved randomization's late actions must be of shape {self._action_shape} "
+                    f"within [-1, 1], got shape {action.shape}"
+                )
+        return pending
 
 
 SWEEPABLE = ("friction", "mass", "payload", "payload_share", "com", "strength", "damping",

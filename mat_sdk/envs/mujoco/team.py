@@ -126,7 +126,7 @@ class RobotTeam(ArrayTeam):
             sources = [(signal.name, signal.size) for signal in self.observations.signals]
             self._randomizer = Randomizer(
                 self.randomization, self._model, self._data, self.control_timestep, sources,
-                spec.env_id,
+                spec.env_id, action_shape=(len(self.actions.driven),),
             )  # fmt: skip
         self._steps = 0
         try:  # a floating base, whose forward travel `travelled` measures
