@@ -185,6 +185,8 @@ def test_a_saved_robot_this_randomization_could_not_draw_is_refused_untouched():
         r"mass must be .* got \[nan": {"mass": np.full_like(mass, np.nan)},
         r"draws friction, which this one leaves off": {"friction": np.ones(1)},
         r"latency must lie in 1..1 control steps, got 1000000": {"latency": 1e6},
+        r"latency must be a whole number of control steps, got nan": {"latency": float("nan")},
+        r"latency must be a whole number of control steps, got 1.5": {"latency": 1.5},
     }
     for message, change in cases.items():
         state = {**before, "randomizer": {**saved, "draws": {**saved["draws"], **change}}}

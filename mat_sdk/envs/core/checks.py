@@ -16,6 +16,16 @@ def is_real(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
 
 
+def whole_number(value: Any) -> int | None:
+    """`value` as an int when it is a whole number (a float of one included), else None: a
+    saved count of 1.5 or NaN is refused, not truncated."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return int(number) if math.isfinite(number) and number.is_integer() else None
+
+
 def short(value: Any, limit: int = 60) -> str:
     """`repr(value)`, cut to `limit` characters: an error names a value, never echoes a huge one."""
     text = repr(value)

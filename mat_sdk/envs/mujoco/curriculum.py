@@ -9,6 +9,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from mat_sdk.envs.core.checks import whole_number
 from mat_sdk.envs.mujoco.terms import CommandCurriculum
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -59,7 +60,7 @@ class CurriculumProgress:
         return {"level": self.level, "steps": self._steps, "errors": self._errors.copy()}
 
     def set_state(self, state: dict[str, Any]) -> None:
-        level, steps = _whole(state["level"]), _whole(state["steps"])
+        level, steps = whole_number(state["level"]), whole_number(state["steps"])
         if level is None or not 0 <= level <= self.curriculum.levels:
             raise ValueError(
                 f"a saved command curriculum level must lie in 0..{self.curriculum.levels}, "
@@ -78,12 +79,3 @@ class CurriculumProgress:
             )
         self.level, self._steps = level, steps
         self._errors[:] = errors
-
-
-def _whole(value: Any) -> int | None:
-    """`value` as an int when it is a whole number (a float of one included), else None."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return None
-    return int(number) if math.isfinite(number) and number.is_integer() else None

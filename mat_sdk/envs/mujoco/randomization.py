@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.checks import finite_range, is_real, short
+from mat_sdk.envs.core.checks import finite_range, is_real, short, whole_number
 from mat_sdk.envs.mujoco.model_task import couple_joints
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -226,9 +226,14 @@ class Draws:
         unknown = sorted(set(state) - known)
         if unknown:
             raise ValueError(f"randomization state: unknown factor(s) {unknown}")
-        values = {k: np.asarray(v, dtype=np.float64) for k, v in state.items()}
-        if "latency" in values:
-            values["latency"] = int(values["latency"])
+        values = {k: np.asarray(v, dtype=np.float64) for k, v in state.items() if k != "latency"}
+        if "latency" in state:
+            values["latency"] = whole_number(state["latency"])
+            if values["latency"] is None:
+                raise ValueError(
+                    "a saved randomization's latency must be a whole number of control steps, "
+                    f"got {short(state['latency'])}"
+                )
         if "payload" in values:
             values["payload"] = float(values["payload"])
         return cls(**values)
