@@ -349,30 +349,10 @@ def test_a_joystick_command_changes_within_an_episode_stands_on_purpose_and_resu
     assert samples[:, 0].min() < -0.4 and samples[:, 1].max() > 0.4 and samples[:, 2].min() < -0.9
 
 
-def test_single_axis_commands_move_along_one_axis_with_a_range_alone():
-    curriculum = terms.CommandCurriculum(vx=(0.3, 1.0), levels=10)
-    command = terms.VelocityCommand(
-        vx=(-0.5, 1.0), vy=(-0.5, 0.5), yaw_rate=(-1.0, 1.0), standing=0.1, single_axis=0.5,
-        curriculum=curriculum,
-    )  # fmt: skip
-    random = np.random.RandomState(0)
-    samples = np.array([command.sample(random) for _ in range(6000)])
-    moving = (samples != 0).sum(axis=1)
-    assert 0.08 < (moving == 0).mean() < 0.12  # standing, as before
-    alone = (moving == 1).mean()
-    assert 0.41 < alone < 0.49  # half of the other nine tenths
-    for axis in range(3):  # each axis about as often
-        assert 0.12 < ((moving == 1) & (samples[:, axis] != 0)).mean() < 0.18
-    first = np.array([command.sample(random, level=0) for _ in range(500)])
-    assert ((first == 0).all(axis=1) | (first[:, 0] >= 0.3)).all()  # only vx has a range
-    assert (first[:, 1:] == 0).all() and 0.08 < (first[:, 0] == 0).mean() < 0.14
-
-
 @pytest.mark.parametrize(
     ("options", "message"),
     [
         ({"standing": 1.5}, r"VelocityCommand.standing is a share in \[0, 1\], got 1.5"),
-        ({"single_axis": -0.1}, r"VelocityCommand.single_axis is a share in \[0, 1\], got -0.1"),
         (
             {"resample_seconds": 0},
             "VelocityCommand.resample_seconds must be a number of seconds > 0",

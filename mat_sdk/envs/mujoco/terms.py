@@ -138,10 +138,7 @@ class VelocityCommand:
     """A base velocity to follow, sampled from the task's seeded stream: forward `vx` and
     sideways `vy` (m/s, in the base's frame) and `yaw_rate` (rad/s), each uniform in its
     (low, high) range; with `standing`, that share of the commands is zero (stand still, on
-    purpose: a joystick at rest); with `single_axis`, that share of the others moves along
-    one of the axes alone (an axis whose range is not empty, chosen at random; the others
-    zero: straight back, sideways or turning on the spot, which independent draws of three
-    axes almost never give); with `resample_seconds`, a new command every so many
+    purpose: a joystick at rest); with `resample_seconds`, a new command every so many
     seconds within an episode, as an operator moves the stick (else one per episode). Every
     agent observes it (signal `command`); a controller passes the operator's command in its
     place."""
@@ -150,7 +147,6 @@ class VelocityCommand:
     vy: tuple[float, float] = (0.0, 0.0)
     yaw_rate: tuple[float, float] = (0.0, 0.0)
     standing: float = 0.0
-    single_axis: float = 0.0
     resample_seconds: float | None = None
     curriculum: CommandCurriculum | None = None  # None: the whole ranges from the start
     names = ("vx", "vy", "yaw_rate")
@@ -166,12 +162,10 @@ class VelocityCommand:
                     f"[{low:.4g}, {high:.4g}]"
                 )
             object.__setattr__(self, name, (low, high))
-        for share in ("standing", "single_axis"):
-            value = getattr(self, share)
-            if not (is_real(value) and 0 <= value <= 1):
-                raise ValueError(
-                    f"VelocityCommand.{share} is a share in [0, 1], got {short(value)}"
-                )
+        if not (is_real(self.standing) and 0 <= self.standing <= 1):
+            raise ValueError(
+                f"VelocityCommand.standing is a share in [0, 1], got {short(self.standing)}"
+            )
         every = self.resample_seconds
         if every is not None and not (is_real(every) and math.isfinite(every) and every > 0):
             raise ValueError(
@@ -200,11 +194,6 @@ class VelocityCommand:
         command = low + (high - low) * random.uniform(size=3)
         if self.standing and random.uniform() < self.standing:  # no draw without standing
             command[:] = 0.0
-        elif self.single_axis and random.uniform() < self.single_axis:
-            axes = np.flatnonzero((low != 0) | (high != 0))  # a zero range moves nothing
-            if len(axes):
-                keep = axes[random.randint(len(axes))]
-                command[np.arange(3) != keep] = 0.0
         return command
 
     def check(self, command) -> np.ndarray:
