@@ -25,8 +25,8 @@ TOLERANCE = 1e-4  # as the export holds ORT to torch
 # How a robot should compile a bundle in OpenVINO, and how it is checked here. f32: the
 # default precision (bf16 where the CPU has it) moves outputs by about 1e-2. No runtime
 # cache: with the CPU plugin's cache of primitives by shape, `decode.onnx` computed 32, 48,
-# 64 and 128 agents wrong (off by 1.3-2.2) on an AVX2 CPU without AVX-512, every other
-# count right (OpenVINO 2026.4.0 and .1); without it, every count at parity.
+# 64 and 128 agents wrong (off by 1.3-2.2) on an AMD EPYC with AVX2 and no AVX-512, the
+# other counts right (OpenVINO 2026.4.0 and .1); without it, every count at parity.
 OPENVINO_CPU_CONFIG = {"INFERENCE_PRECISION_HINT": "f32", "CPU_RUNTIME_CACHE_CAPACITY": "0"}
 
 
