@@ -9,7 +9,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.checks import whole_number
+from mat_sdk.envs.core.checks import short, whole_number
 from mat_sdk.envs.mujoco.terms import CommandCurriculum
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -64,12 +64,12 @@ class CurriculumProgress:
         if level is None or not 0 <= level <= self.curriculum.levels:
             raise ValueError(
                 f"a saved command curriculum level must lie in 0..{self.curriculum.levels}, "
-                f"got {str(state['level'])[:60]}"
+                f"got {short(state['level'])}"
             )
         if steps is None or steps < 0:
             raise ValueError(
                 "a saved command curriculum step count must be a whole number >= 0, got "
-                f"{str(state['steps'])[:60]}"
+                f"{short(state['steps'])}"
             )
         errors = np.asarray(state["errors"], dtype=np.float64)
         if errors.shape != (3,) or not (np.isfinite(errors).all() and (errors >= 0).all()):

@@ -470,10 +470,11 @@ class Randomizer:
             "damping": (config.damping, (joints,)),
             "armature": (config.armature, (joints,)),
         }
-        if self._base is not None:
-            expected["com"] = (None if config.com is None else (-config.com, config.com), (3,))
-            drawn = config.payload or config.payload_share  # as `new_episode` draws it
-            expected["payload"] = (self._payload_range() if drawn else None, ())
+        floating = self._base is not None  # payload and centre of mass act on the base
+        com = config.com is not None and floating
+        payload = (config.payload or config.payload_share) and floating  # as `new_episode`
+        expected["com"] = ((-config.com, config.com) if com else None, (3,))
+        expected["payload"] = (self._payload_range() if payload else None, ())
         for name, (bounds, shape) in expected.items():
             values = getattr(draws, name)
             if values is None:
@@ -491,8 +492,6 @@ class Randomizer:
                     f"a saved randomization's {name} must be {count} within "
                     f"[{bounds[0]:g}, {bounds[1]:g}], got {got} (shape {values.shape})"
                 )
-        if self._base is None and (draws.com is not None or draws.payload is not None):
-            raise ValueError("a saved randomization moves a floating base this robot does not have")
         latency = config.latency or (0, 0)
         if not latency[0] <= draws.latency <= latency[1]:
             raise ValueError(
@@ -517,9 +516,10 @@ class Randomizer:
         pending = [np.asarray(p, dtype=np.float64) for p in saved]
         for action in pending:
             if action.shape != self._action_shape or not (np.abs(action) <= 1.0).all():
+                largest = np.abs(action).max(initial=0.0)
                 raise ValueError(
                     f"a saved randomization's late actions must be of shape {self._action_shape} "
-                    f"within [-1, 1], got shape {action.shape}"
+                    f"within [-1, 1], got shape {action.shape}, largest |value| {largest:.3g}"
                 )
         return pending
 
