@@ -515,22 +515,27 @@ class JointLimits(Term):
 # ------------------------------------------------------------------------- terminations
 @dataclass(frozen=True)
 class StandStill(Term):
-    """At a zero command (speeds under `below`), minus how far the hinge and slide joints are
-    from the start pose (summed, in joint units): a robot told to stand stands, rather than
-    stepping in place (legged_gym's stand_still). 0 while the command asks to move."""
+    """At a zero command (speeds under `below`), how close the hinge and slide joints are to
+    the start pose: exp(-mean distance / `width`), the distance in joint units (rad, m), 1 at
+    the pose; 0 while the command asks to move. A robot told to stand stands in its pose
+    rather than stepping in place (legged_gym's stand_still). A kernel that pays, not a cost:
+    under `only_positive_rewards` a cost that outweighs the step's other terms clips every
+    standing step to 0, and a policy standing anywhere earns the same."""
 
     below: float = 0.1
+    width: float = 0.25
     needs_commands = True
 
     def __post_init__(self):
         super().__post_init__()
-        self._positive("below")
+        self._positive("below", "width")
 
     def value(self, step: Step) -> float:
         if step.command.size and float(np.abs(step.command).max()) >= self.below:
             return 0.0
         address = step.cached("joint_qpos", _joint_qpos)
-        return -float(np.abs(step.data.qpos[address] - step.start_qpos[address]).sum())
+        distance = np.abs(step.data.qpos[address] - step.start_qpos[address]).mean()
+        return math.exp(-float(distance) / self.width)
 
 
 def _joint_qpos(model: mujoco.MjModel) -> np.ndarray:
