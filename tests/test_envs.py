@@ -617,3 +617,23 @@ def test_a_diverged_simulation_ends_the_episode_with_a_warning():
     with pytest.warns(PhysicsDiverged, match="HalfCheetah-6x1: the physics diverged"):
         obs, reward, terminated, truncated = scenario.step(np.zeros((6, 1)))
     assert truncated and reward == 0.0 and np.isfinite(obs).all()
+
+
+def test_a_mamujoco_episode_saved_with_a_damaged_value_is_refused_and_nothing_changes():
+    team = envs.make_team("mamujoco:HalfCheetah-6x1", seed=0)
+    team.reset(seed=0)
+    team.advance(np.zeros((6, 1)))
+    saved, before = team.get_state(), team.get_state()
+    cases = {
+        r"physics state must be \d+ finite numbers .* largest \|value\| nan": {
+            "physics": saved["physics"] * np.nan
+        },
+        r"step count must be a whole number in 0..1000 .* got 1000000": {"steps": 10**6},
+        r"start position must be a number, got inf": {"start_x": np.inf},
+        r"random stream must be numpy's generator state": {"random": {"state": 5}},
+    }
+    for message, change in cases.items():
+        with pytest.raises(ValueError, match=message):
+            team.set_state({**saved, **change})
+        np.testing.assert_array_equal(team.get_state()["physics"], before["physics"])
+        assert team.get_state()["steps"] == before["steps"]

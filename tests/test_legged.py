@@ -483,3 +483,59 @@ def test_joystick_training_starts_at_the_curriculums_first_level_and_logs_it(tmp
         command = state["command"]
         assert state["curriculum"]["level"] == 0
         assert (command == 0).all() or (0.3 <= command[0] <= 1.0 and (command[1:] == 0).all())
+
+
+def test_a_saved_episode_with_a_value_it_could_not_have_saved_is_refused_and_nothing_changes():
+    def joystick(seed):
+        team = envs.make_team("quadrupeds:go2_joystick", seed=seed, randomize=True)
+        team.reset(seed=seed)
+        for _ in range(20):
+            team.advance(np.random.default_rng(seed).uniform(-1, 1, (4, 3)))
+        return team
+
+    saved, other = joystick(0).get_state(), joystick(1)
+    before = other.get_state()
+    size, task = saved["physics"].size, saved["task"]
+    (rhythm,) = [key for key in task["memory"] if key.startswith("phase_time")]
+    cases = {
+        rf"physics state must be {size} finite numbers .* got shape \({size - 3},\)": {
+            "physics": saved["physics"][:-3]
+        },
+        r"physics state .* largest \|value\| nan": {"physics": saved["physics"] * np.nan},
+        r"geom placement must be .* largest \|value\| inf": {"geom_pos": saved["geom_pos"] + np.inf},
+        r"step count must be a whole number in 0..1000 .* got -5": {"steps": -5},
+        r"step count must be a whole number in 0..1000 .* got 1.5": {"steps": 1.5},
+        r"start pose must be 2 finite numbers": {"start": [np.zeros(5), saved["start"][1]]},
+        r"random stream must be numpy's generator state": {"random": ("MT19937", 5)},
+        r"command must be 3 finite numbers within \+-10 .* largest \|value\| 1e\+09": {
+            "task": {**task, "command": np.array([1e9, 0.0, 0.0])}
+        },
+        r"previous action must be 12 finite numbers within \+-1": {
+            "task": {**task, "previous_action": np.full(12, np.nan)}
+        },
+        r"command age must be a whole number of steps >= 0, got -3": {
+            "task": {**task, "command_age": -3}
+        },
+        rf"term memory '{rhythm}' must be 8 finite numbers .* got shape \(3,\)": {
+            "task": {**task, "memory": {**task["memory"], rhythm: np.zeros(3)}}
+        },
+        r"term memory 'x' holds 100000 numbers, past the 4096": {
+            "task": {**task, "memory": {"x": np.zeros(100_000)}}
+        },
+        # every other value taken, the randomizer's refused: the physics set before it undone
+        r"mass must be 14 numbers within": {
+            "randomizer": {
+                **saved["randomizer"],
+                "draws": {**saved["randomizer"]["draws"], "mass": np.full(14, 1e9)},
+            }
+        },
+    }
+    for message, change in cases.items():
+        with pytest.raises(ValueError, match=message):
+            other.set_state({**saved, **change})
+        now = other.get_state()
+        np.testing.assert_array_equal(now["physics"], before["physics"])
+        np.testing.assert_array_equal(now["task"]["command"], before["task"]["command"])
+        assert now["steps"] == before["steps"]
+    other.set_state(saved)  # what an env saved itself is taken
+    np.testing.assert_array_equal(other.get_state()["physics"], saved["physics"])

@@ -45,3 +45,33 @@ def finite_range(value: Any, name: str) -> tuple[float, float]:
             f"{name} must be [low, high], two finite numbers with low <= high, got {short(value)}"
         )
     return float(value[0]), float(value[1])
+
+
+def saved_array(value: Any, shape: tuple[int, ...], what: str, bound: float = math.inf):
+    """`value`, read back from a checkpoint, as a float array of `shape`, finite and within
+    +-`bound`: a resumed env takes nothing that it could not have saved itself."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"a saved {what} must be numbers, got {short(value)}") from None
+    if array.shape != tuple(shape) or not (
+        np.isfinite(array).all() and (np.abs(array) <= bound).all()
+    ):
+        within = f" within +-{bound:g}" if bound < math.inf else ""
+        largest = np.abs(array).max(initial=0.0)  # NaN where any is NaN
+        raise ValueError(
+            f"a saved {what} must be {math.prod(shape)} finite numbers{within} "
+            f"(shape {tuple(shape)}), got shape {array.shape}, largest |value| {largest:.3g}"
+        )
+    return array
+
+
+def set_random_state(random: np.random.RandomState, saved: Any) -> None:
+    """`random` set to a stream's saved state; one that is not numpy's is refused naming it."""
+    try:
+        random.set_state(saved)
+    except (TypeError, ValueError, IndexError, KeyError) as error:
+        raise ValueError(
+            f"a saved random stream must be numpy's generator state, got one it refuses "
+            f"({type(error).__name__}: {short(str(error))})"
+        ) from None

@@ -31,6 +31,7 @@ from dm_control.rl import control
 from dm_control.suite import base
 
 from mat_sdk.envs.core.base import SETTLE_SECONDS, user_call
+from mat_sdk.envs.core.checks import saved_array, short, whole_number
 from mat_sdk.envs.mujoco import terms
 from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
 from mat_sdk.envs.mujoco.trunk import Trunk, geom_ids
@@ -219,6 +220,8 @@ class ModelTask(base.Task):
     """The task of a `ModelEnvironment`: start pose and noise, reward, termination, commands;
     it also keeps the actions of this step and the one before, for terms and observations."""
 
+    MEMORY_ENTRIES, MEMORY_SIZE = 64, 4096  # bounds on a saved term memory: far past a robot's
+
     def __init__(self, recipe: ModelEnvironment, physics, random):
         super().__init__(random=random)
         self.recipe = recipe
@@ -352,17 +355,52 @@ class ModelTask(base.Task):
         return state
 
     def set_state(self, state: dict[str, Any]) -> None:
-        for name in ("command", "action", "previous_action"):
-            getattr(self, name)[:] = state[name]
-        self._command_age = int(state.get("command_age", 0))  # absent before resampling
-        self._fell = bool(state.get("fell", False))
+        """The task's part of a saved episode, every value checked before any is used."""
+        command = saved_array(
+            state["command"], self.command.shape, "command", terms.VelocityCommand.LIMIT
+        )
+        actions = [
+            saved_array(state[name], self.action.shape, name.replace("_", " "), 1.0)
+            for name in ("action", "previous_action")
+        ]
+        age = whole_number(state.get("command_age", 0))  # absent before resampling
+        if age is None or age < 0:
+            raise ValueError(
+                f"a saved command age must be a whole number of steps >= 0, got "
+                f"{short(state['command_age'])}"
+            )
+        memory = self._checked_memory(state["memory"])
         if self.curriculum is not None and "curriculum" in state:
             self.curriculum.set_state(state["curriculum"])
+        self.command[:] = command
+        self.action[:], self.previous_action[:] = actions
+        self._command_age = age
+        self._fell = bool(state.get("fell", False))
         if self._step is not None:
             self._step.memory.clear()
-            self._step.memory.update(
-                {key: np.array(value, dtype=np.float64) for key, value in state["memory"].items()}
+            self._step.memory.update(memory)
+
+    def _checked_memory(self, saved: Any) -> dict[str, np.ndarray]:
+        """The terms' memory of the episode (a foot's time in the air, ...): named arrays of
+        finite numbers, each the shape the term keeps where this env has kept it already."""
+        own = {} if self._step is None else self._step.memory
+        if not isinstance(saved, dict) or len(saved) > self.MEMORY_ENTRIES:
+            raise ValueError(
+                f"a saved term memory must be a mapping of at most {self.MEMORY_ENTRIES} "
+                f"arrays, got {short(saved)}"
             )
+        memory = {}
+        for key, value in saved.items():
+            if not isinstance(key, str):
+                raise ValueError(f"a saved term memory is keyed by names, got {short(key)}")
+            shape = own[key].shape if key in own else np.shape(value)
+            if math.prod(shape) > self.MEMORY_SIZE:
+                raise ValueError(
+                    f"a saved term memory {short(key)} holds {math.prod(shape)} numbers, past "
+                    f"the {self.MEMORY_SIZE} a term keeps"
+                )
+            memory[key] = saved_array(value, shape, f"term memory {short(key)}")
+        return memory
 
     # ---------------------------------------------------------------- dm_control's Task
     def get_observation(self, physics) -> dict:

@@ -32,6 +32,7 @@ from mat_sdk.envs.core.base import (
     position_features,
     render_failed,
 )
+from mat_sdk.envs.core.checks import saved_array, set_random_state, short, whole_number
 from mat_sdk.envs.core.faults import Fault, faults_of
 from mat_sdk.envs.mujoco.action_map import ActionMap, actuator_name, resolve_faults
 from mat_sdk.envs.mujoco.actuation import weaken
@@ -320,17 +321,45 @@ class RobotTeam(ArrayTeam):
         }
 
     def set_state(self, state: dict) -> None:
-        mujoco.mj_setState(self._model, self._data, np.asarray(state["physics"]), _FULL_STATE)
-        self._model.geom_pos[:] = state["geom_pos"]
-        self._task._random.set_state(state["random"])
-        self._steps = int(state["steps"])
+        """An episode as `get_state` saved it (a resumed run's env). Every value is checked
+        before it is used, and a state refused part of the way leaves the env as it was."""
+        before = self.get_state()
+        try:
+            self._restore(state)
+        except Exception:
+            self._restore(before)
+            raise
+
+    def _restore(self, state: dict) -> None:
+        model = self._model
+        size = mujoco.mj_stateSize(model, _FULL_STATE)
+        physics = saved_array(state["physics"], (size,), "physics state")
+        geom_pos = saved_array(state["geom_pos"], (model.ngeom, 3), "geom placement")
+        steps = whole_number(state["steps"])
+        if steps is None or not 0 <= steps <= self.episode_limit:
+            raise ValueError(
+                f"a saved step count must be a whole number in 0..{self.episode_limit} (the "
+                f"episode's limit), got {short(state['steps'])}"
+            )
+        start = self._start
+        if start is not None and "start" in state:  # absent: saved before it was kept
+            saved = state["start"]
+            if len(saved) != len(start):
+                raise ValueError(f"a saved start pose must be {len(start)} arrays")
+            start = tuple(
+                saved_array(value, own.shape, "start pose")
+                for value, own in zip(saved, start, strict=True)
+            )
+        set_random_state(self._task._random, state["random"])
+        mujoco.mj_setState(model, self._data, physics, _FULL_STATE)
+        model.geom_pos[:] = geom_pos
+        self._steps = steps
         if "task" in state:
             self._task.set_state(state["task"])
-        if "start" in state:
-            self._start = tuple(np.asarray(v, dtype=np.float64) for v in state["start"])
+        self._start = start
         if self._randomizer is not None:
             self._randomizer.set_state(state["randomizer"])
-        mujoco.mj_forward(self._model, self._data)
+        mujoco.mj_forward(model, self._data)
 
     def state(self) -> np.ndarray:
         """The global state: all joint positions (less horizontal root position) and velocities."""
