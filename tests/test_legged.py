@@ -502,7 +502,7 @@ def test_a_saved_episode_with_a_value_it_could_not_have_saved_is_refused_and_not
             "physics": saved["physics"][:-3]
         },
         r"physics state .* largest \|value\| nan": {"physics": saved["physics"] * np.nan},
-        r"geom placement must be .* largest \|value\| inf": {"geom_pos": saved["geom_pos"] + np.inf},
+        r"geom placement .* largest \|value\| inf": {"geom_pos": saved["geom_pos"] + np.inf},
         r"step count must be a whole number in 0..1000 .* got -5": {"steps": -5},
         r"step count must be a whole number in 0..1000 .* got 1.5": {"steps": 1.5},
         r"start pose must be 2 finite numbers": {"start": [np.zeros(5), saved["start"][1]]},
