@@ -503,8 +503,8 @@ def test_a_saved_episode_with_a_value_it_could_not_have_saved_is_refused_and_not
         },
         r"physics state .* largest \|value\| nan": {"physics": saved["physics"] * np.nan},
         r"geom placement .* largest \|value\| inf": {"geom_pos": saved["geom_pos"] + np.inf},
-        r"step count must be a whole number in 0..1000 .* got -5": {"steps": -5},
-        r"step count must be a whole number in 0..1000 .* got 1.5": {"steps": 1.5},
+        r"step count must be a whole number in 0..1000, got -5": {"steps": -5},
+        r"step count must be a whole number in 0..1000, got 1.5": {"steps": 1.5},
         r"start pose must be 2 finite numbers": {"start": [np.zeros(5), saved["start"][1]]},
         r"random stream must be numpy's generator state": {"random": ("MT19937", 5)},
         r"command must be 3 finite numbers within \+-10 .* largest \|value\| 1e\+09": {
@@ -513,7 +513,7 @@ def test_a_saved_episode_with_a_value_it_could_not_have_saved_is_refused_and_not
         r"previous action must be 12 finite numbers within \+-1": {
             "task": {**task, "previous_action": np.full(12, np.nan)}
         },
-        r"command age must be a whole number of steps >= 0, got -3": {
+        r"command age \(steps\) must be a whole number >= 0, got -3": {
             "task": {**task, "command_age": -3}
         },
         rf"term memory '{rhythm}' must be 8 finite numbers .* got shape \(3,\)": {

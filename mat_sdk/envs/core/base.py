@@ -163,6 +163,17 @@ def user_call(function: Callable, role: str, *args: Any) -> Any:
         ) from error
 
 
+def restore_whole(team: Any, state: dict, restore: Callable[[dict], None]) -> None:
+    """`restore(state)` (a resumed run's env, from a checkpoint), or the team as it was and
+    the error raised: a state refused part of the way leaves no env half restored."""
+    before = team.get_state()
+    try:
+        restore(state)
+    except Exception:
+        restore(before)
+        raise
+
+
 def render_failed(error: Exception) -> RuntimeError:
     """The error for a frame MuJoCo could not render: what to install and set."""
     return RuntimeError(

@@ -66,10 +66,22 @@ def saved_array(value: Any, shape: tuple[int, ...], what: str, bound: float = ma
     return array
 
 
-def set_random_state(random: np.random.RandomState, saved: Any) -> None:
+def saved_whole_number(value: Any, what: str, high: int | None = None) -> int:
+    """`value`, read back from a checkpoint, as a whole number in 0..`high` (no bound: >= 0)."""
+    number = whole_number(value)
+    if number is None or number < 0 or (high is not None and number > high):
+        bound = ">= 0" if high is None else f"in 0..{high}"
+        raise ValueError(f"a saved {what} must be a whole number {bound}, got {short(value)}")
+    return number
+
+
+def set_random_state(random: np.random.RandomState | np.random.Generator, saved: Any) -> None:
     """`random` set to a stream's saved state; one that is not numpy's is refused naming it."""
     try:
-        random.set_state(saved)
+        if isinstance(random, np.random.Generator):
+            random.bit_generator.state = saved
+        else:
+            random.set_state(saved)
     except (TypeError, ValueError, IndexError, KeyError) as error:
         raise ValueError(
             f"a saved random stream must be numpy's generator state, got one it refuses "

@@ -36,8 +36,15 @@ from mat_sdk.envs.core.base import (
     end_diverged,
     position_features,
     render_failed,
+    restore_whole,
 )
-from mat_sdk.envs.core.checks import is_real, saved_array, short, whole_number
+from mat_sdk.envs.core.checks import (
+    is_real,
+    saved_array,
+    saved_whole_number,
+    set_random_state,
+    short,
+)
 from mat_sdk.envs.core.faults import Fault, faults_of
 from mat_sdk.envs.mujoco.randomization import Randomization, Randomizer
 
@@ -315,34 +322,18 @@ class MaMuJoCoTeam(ArrayTeam):
     def set_state(self, state: dict) -> None:
         """An episode as `get_state` saved it (a resumed run's env). Every value is checked
         before it is used, and a state refused part of the way leaves the env as it was."""
-        before = self.get_state()
-        try:
-            self._restore(state)
-        except Exception:
-            self._restore(before)
-            raise
+        restore_whole(self, state, self._restore)
 
     def _restore(self, state: dict) -> None:
         env = self._env.single_agent_env.unwrapped
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         size = mujoco.mj_stateSize(env.model, spec)
         physics = saved_array(state["physics"], (size,), "physics state")
-        steps = whole_number(state["steps"])
-        if steps is None or not 0 <= steps <= self.episode_limit:
-            raise ValueError(
-                f"a saved step count must be a whole number in 0..{self.episode_limit} (the "
-                f"episode's limit), got {short(state['steps'])}"
-            )
+        steps = saved_whole_number(state["steps"], "step count", self.episode_limit)
         start_x = state.get("start_x", math.nan)  # absent: saved before it was kept
         if not is_real(start_x) or math.isinf(start_x):
             raise ValueError(f"a saved start position must be a number, got {short(start_x)}")
-        try:
-            env.np_random.bit_generator.state = state["random"]
-        except (TypeError, ValueError, KeyError) as error:
-            raise ValueError(
-                f"a saved random stream must be numpy's generator state, got one it refuses "
-                f"({type(error).__name__}: {short(str(error))})"
-            ) from None
+        set_random_state(env.np_random, state["random"])
         if self._randomizer is not None:
             self._randomizer.set_state(state["randomizer"])
         mujoco.mj_setState(env.model, env.data, physics, spec)

@@ -31,7 +31,7 @@ from dm_control.rl import control
 from dm_control.suite import base
 
 from mat_sdk.envs.core.base import SETTLE_SECONDS, user_call
-from mat_sdk.envs.core.checks import saved_array, short, whole_number
+from mat_sdk.envs.core.checks import saved_array, saved_whole_number, short
 from mat_sdk.envs.mujoco import terms
 from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
 from mat_sdk.envs.mujoco.trunk import Trunk, geom_ids
@@ -363,12 +363,8 @@ class ModelTask(base.Task):
             saved_array(state[name], self.action.shape, name.replace("_", " "), 1.0)
             for name in ("action", "previous_action")
         ]
-        age = whole_number(state.get("command_age", 0))  # absent before resampling
-        if age is None or age < 0:
-            raise ValueError(
-                f"a saved command age must be a whole number of steps >= 0, got "
-                f"{short(state['command_age'])}"
-            )
+        # absent before commands were resampled within an episode
+        age = saved_whole_number(state.get("command_age", 0), "command age (steps)")
         memory = self._checked_memory(state["memory"])
         if self.curriculum is not None and "curriculum" in state:
             self.curriculum.set_state(state["curriculum"])

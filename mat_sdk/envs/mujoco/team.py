@@ -31,8 +31,9 @@ from mat_sdk.envs.core.base import (
     end_diverged,
     position_features,
     render_failed,
+    restore_whole,
 )
-from mat_sdk.envs.core.checks import saved_array, set_random_state, short, whole_number
+from mat_sdk.envs.core.checks import saved_array, saved_whole_number, set_random_state
 from mat_sdk.envs.core.faults import Fault, faults_of
 from mat_sdk.envs.mujoco.action_map import ActionMap, actuator_name, resolve_faults
 from mat_sdk.envs.mujoco.actuation import weaken
@@ -323,24 +324,14 @@ class RobotTeam(ArrayTeam):
     def set_state(self, state: dict) -> None:
         """An episode as `get_state` saved it (a resumed run's env). Every value is checked
         before it is used, and a state refused part of the way leaves the env as it was."""
-        before = self.get_state()
-        try:
-            self._restore(state)
-        except Exception:
-            self._restore(before)
-            raise
+        restore_whole(self, state, self._restore)
 
     def _restore(self, state: dict) -> None:
         model = self._model
         size = mujoco.mj_stateSize(model, _FULL_STATE)
         physics = saved_array(state["physics"], (size,), "physics state")
         geom_pos = saved_array(state["geom_pos"], (model.ngeom, 3), "geom placement")
-        steps = whole_number(state["steps"])
-        if steps is None or not 0 <= steps <= self.episode_limit:
-            raise ValueError(
-                f"a saved step count must be a whole number in 0..{self.episode_limit} (the "
-                f"episode's limit), got {short(state['steps'])}"
-            )
+        steps = saved_whole_number(state["steps"], "step count", self.episode_limit)
         start = self._start
         if start is not None and "start" in state:  # absent: saved before it was kept
             saved = state["start"]

@@ -512,7 +512,6 @@ class JointLimits(Term):
         return model.jnt_qposadr[limited], (low + high) / 2, (high - low) / 2 * self.fraction
 
 
-# ------------------------------------------------------------------------- terminations
 @dataclass(frozen=True)
 class StandStill(Term):
     """At a zero command (speeds under `below`), how close the hinge and slide joints are to
@@ -544,6 +543,7 @@ def _joint_qpos(model: mujoco.MjModel) -> np.ndarray:
     return model.jnt_qposadr[model.jnt_type >= slide]
 
 
+# ------------------------------------------------------------------------- terminations
 @dataclass(frozen=True)
 class TrunkHeight:
     """End the episode when the base is lower than `minimum` (m): it fell."""
