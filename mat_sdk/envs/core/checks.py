@@ -1,5 +1,6 @@
-"""Checks of the numbers a config or an env option gives: a real number is not a bool or a
-string that numpy or `float` would quietly coerce, and a range is two finite numbers in order."""
+"""Checks of the numbers a config, an env option or a checkpoint's saved env state gives: a
+real number is not a bool or a string that numpy or `float` would quietly coerce, a range is
+two finite numbers in order, and a saved array has the shape and bounds the env saves."""
 
 from __future__ import annotations
 
