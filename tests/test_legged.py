@@ -447,10 +447,10 @@ def test_curriculum_levels_rise_when_commands_are_followed_and_drop_when_missed_
     restored = CurriculumProgress(curriculum, Trunk(model), settle_steps=5)
     restored.set_state(saved)
     assert restored.get_state()["steps"] == 12 and restored.level == 2
-    with pytest.raises(ValueError, match=r"curriculum level must lie in 0..2, got 3"):
+    with pytest.raises(ValueError, match=r"curriculum level must be a whole number in 0..2, got 3"):
         restored.set_state({**saved, "level": 3})
     for level in (np.nan, 1.5, "two"):
-        with pytest.raises(ValueError, match=r"curriculum level must lie in 0..2, got"):
+        with pytest.raises(ValueError, match=r"level must be a whole number in 0..2, got"):
             restored.set_state({**saved, "level": level})
     for steps in (-1, np.inf, 2.5):
         with pytest.raises(ValueError, match=r"curriculum step count must be a whole number"):

@@ -196,10 +196,10 @@ def test_a_saved_robot_this_randomization_could_not_draw_is_refused_untouched():
     assert len(late) == 1
     for message, pending in {
         r"holds 3 late actions; its latency of 1 control steps holds 0 or 1": late * 3,
-        r"late actions must be of shape \(12,\) within \[-1, 1\], got shape \(12,\), "
-        r"largest \|value\| [56]": [late[0] + 5.0],
-        r"late actions must be of shape \(12,\) within \[-1, 1\], got shape \(3,\)":
-            [late[0][:3]],
+        r"late action must be 12 finite numbers within \+-1 \(shape \(12,\)\), got shape "
+        r"\(12,\), largest \|value\| [56]": [late[0] + 5.0],
+        r"late action must be 12 finite numbers within \+-1 \(shape \(12,\)\), got shape "
+        r"\(3,\)": [late[0][:3]],
     }.items():  # fmt: skip
         with pytest.raises(ValueError, match=message):
             other.set_state({**before, "randomizer": {**saved, "pending": pending}})

@@ -9,7 +9,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.checks import short, whole_number
+from mat_sdk.envs.core.checks import saved_whole_number
 from mat_sdk.envs.mujoco.terms import CommandCurriculum
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -60,17 +60,9 @@ class CurriculumProgress:
         return {"level": self.level, "steps": self._steps, "errors": self._errors.copy()}
 
     def set_state(self, state: dict[str, Any]) -> None:
-        level, steps = whole_number(state["level"]), whole_number(state["steps"])
-        if level is None or not 0 <= level <= self.curriculum.levels:
-            raise ValueError(
-                f"a saved command curriculum level must lie in 0..{self.curriculum.levels}, "
-                f"got {short(state['level'])}"
-            )
-        if steps is None or steps < 0:
-            raise ValueError(
-                "a saved command curriculum step count must be a whole number >= 0, got "
-                f"{short(state['steps'])}"
-            )
+        levels = self.curriculum.levels
+        level = saved_whole_number(state["level"], "command curriculum level", levels)
+        steps = saved_whole_number(state["steps"], "command curriculum step count")
         errors = np.asarray(state["errors"], dtype=np.float64)
         if errors.shape != (3,) or not (np.isfinite(errors).all() and (errors >= 0).all()):
             raise ValueError(

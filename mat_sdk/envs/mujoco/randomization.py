@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.checks import finite_range, is_real, short, whole_number
+from mat_sdk.envs.core.checks import finite_range, is_real, saved_array, short, whole_number
 from mat_sdk.envs.mujoco.model_task import couple_joints
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -513,14 +513,10 @@ class Randomizer:
                 f"a saved randomization holds {len(saved)} late actions; its latency of "
                 f"{latency} control steps holds 0 or {latency}"
             )
-        pending = [np.asarray(p, dtype=np.float64) for p in saved]
-        for action in pending:
-            if action.shape != self._action_shape or not (np.abs(action) <= 1.0).all():
-                largest = np.abs(action).max(initial=0.0)
-                raise ValueError(
-                    f"a saved randomization's late actions must be of shape {self._action_shape} "
-                    f"within [-1, 1], got shape {action.shape}, largest |value| {largest:.3g}"
-                )
+        pending = [
+            saved_array(action, self._action_shape, "randomization's late action", 1.0)
+            for action in saved
+        ]
         return pending
 
 
