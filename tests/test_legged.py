@@ -455,8 +455,9 @@ def test_curriculum_levels_rise_when_commands_are_followed_and_drop_when_missed_
     for steps in (-1, np.inf, 2.5):
         with pytest.raises(ValueError, match=r"curriculum step count must be a whole number"):
             restored.set_state({**saved, "steps": steps})
-    with pytest.raises(ValueError, match=r"curriculum errors must be three finite numbers >= 0"):
-        restored.set_state({**saved, "errors": [np.nan, 0.0, 1.0]})
+    for errors in ([np.nan, 0.0, 1.0], [0.5, -1.0, 1.0], [0.5, 1.0]):
+        with pytest.raises(ValueError, match=r"curriculum errors must be 3 finite numbers >= 0"):
+            restored.set_state({**saved, "errors": errors})
     assert restored.level == 2 and restored.get_state()["steps"] == 12  # nothing taken from it
 
 
@@ -519,6 +520,7 @@ def test_a_saved_episode_with_a_value_it_could_not_have_saved_is_refused_and_not
         rf"term memory '{rhythm}' must be 8 finite numbers .* got shape \(3,\)": {
             "task": {**task, "memory": {**task["memory"], rhythm: np.zeros(3)}}
         },
+        r"fall flag must be True or False, got 'no'": {"task": {**task, "fell": "no"}},
         r"term memory 'x' holds 100000 numbers, past the 4096": {
             "task": {**task, "memory": {"x": np.zeros(100_000)}}
         },

@@ -48,23 +48,43 @@ def finite_range(value: Any, name: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
-def saved_array(value: Any, shape: tuple[int, ...], what: str, bound: float = math.inf):
-    """`value`, read back from a checkpoint, as a float array of `shape`, finite and within
-    +-`bound`: a resumed env takes nothing that it could not have saved itself."""
+def saved_array(
+    value: Any,
+    shape: tuple[int, ...],
+    what: str,
+    bound: float = math.inf,
+    nonnegative: bool = False,
+):
+    """`value`, read back from a checkpoint, as a float array of `shape`, finite, within
+    +-`bound` and, with `nonnegative`, >= 0: a resumed env takes nothing that it could not
+    have saved itself."""
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"a saved {what} must be numbers, got {short(value)}") from None
     if array.shape != tuple(shape) or not (
-        np.isfinite(array).all() and (np.abs(array) <= bound).all()
+        np.isfinite(array).all()
+        and (np.abs(array) <= bound).all()
+        and not (nonnegative and (array < 0).any())
     ):
         within = f" within +-{bound:g}" if bound < math.inf else ""
+        sign = " >= 0" if nonnegative else ""
         largest = np.abs(array).max(initial=0.0)  # NaN where any is NaN
+        smallest = f", smallest {array.min(initial=0.0):.3g}" if nonnegative else ""
         raise ValueError(
-            f"a saved {what} must be {math.prod(shape)} finite numbers{within} "
-            f"(shape {tuple(shape)}), got shape {array.shape}, largest |value| {largest:.3g}"
+            f"a saved {what} must be {math.prod(shape)} finite numbers{sign}{within} "
+            f"(shape {tuple(shape)}), got shape {array.shape}, largest |value| "
+            f"{largest:.3g}{smallest}"
         )
     return array
+
+
+def saved_flag(value: Any, what: str) -> bool:
+    """`value`, read back from a checkpoint, as a truth value: True or False, nothing that
+    merely converts to one (a string, a list)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"a saved {what} must be True or False, got {short(value)}")
+    return bool(value)
 
 
 def saved_whole_number(value: Any, what: str, high: int | None = None) -> int:

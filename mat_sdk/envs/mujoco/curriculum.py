@@ -9,7 +9,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from mat_sdk.envs.core.checks import saved_whole_number
+from mat_sdk.envs.core.checks import saved_array, saved_whole_number
 from mat_sdk.envs.mujoco.terms import CommandCurriculum
 from mat_sdk.envs.mujoco.trunk import Trunk
 
@@ -63,11 +63,6 @@ class CurriculumProgress:
         levels = self.curriculum.levels
         level = saved_whole_number(state["level"], "command curriculum level", levels)
         steps = saved_whole_number(state["steps"], "command curriculum step count")
-        errors = np.asarray(state["errors"], dtype=np.float64)
-        if errors.shape != (3,) or not (np.isfinite(errors).all() and (errors >= 0).all()):
-            raise ValueError(
-                "saved command curriculum errors must be three finite numbers >= 0, got "
-                f"{np.array2string(errors.ravel()[:3])[:60]}"
-            )
+        errors = saved_array(state["errors"], (3,), "command curriculum errors", nonnegative=True)
         self.level, self._steps = level, steps
         self._errors[:] = errors

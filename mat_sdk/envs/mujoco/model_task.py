@@ -31,7 +31,7 @@ from dm_control.rl import control
 from dm_control.suite import base
 
 from mat_sdk.envs.core.base import SETTLE_SECONDS, user_call
-from mat_sdk.envs.core.checks import saved_array, saved_whole_number, short
+from mat_sdk.envs.core.checks import saved_array, saved_flag, saved_whole_number, short
 from mat_sdk.envs.mujoco import terms
 from mat_sdk.envs.mujoco.curriculum import CurriculumProgress
 from mat_sdk.envs.mujoco.trunk import Trunk, geom_ids
@@ -366,12 +366,13 @@ class ModelTask(base.Task):
         # absent before commands were resampled within an episode
         age = saved_whole_number(state.get("command_age", 0), "command age (steps)")
         memory = self._checked_memory(state["memory"])
+        fell = saved_flag(state.get("fell", False), "fall flag")
         if self.curriculum is not None and "curriculum" in state:
             self.curriculum.set_state(state["curriculum"])
         self.command[:] = command
         self.action[:], self.previous_action[:] = actions
         self._command_age = age
-        self._fell = bool(state.get("fell", False))
+        self._fell = fell
         if self._step is not None:
             self._step.memory.clear()
             self._step.memory.update(memory)
