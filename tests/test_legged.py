@@ -317,6 +317,20 @@ def test_mat_eval_grid_reports_tracking_per_command_and_plots_it(tmp_path):
     assert both.exit_code == 2 and "--sweep and --grid are two reports" in both.output
     commanded = CliRunner().invoke(main, [*args, "--env-option", "command=[1,0,0]"])
     assert commanded.exit_code == 2 and "--grid sets the command itself" in commanded.output
+    own = CliRunner().invoke(
+        main, [*args, "--grid-command", "0,0.3,0", "--grid-command", "-0.2,0,1"]
+    )
+    rows = [line for line in own.output.splitlines() if re.match(r"\| -?\d", line)]
+    assert own.exit_code == 0 and [row.split(" |")[0] for row in rows] == [
+        "| 0, 0.3, 0",
+        "| -0.2, 0, 1",
+    ]
+    for bad in ("0.3,0", "0,nan,0", "fast,0,0", "0,0,11"):
+        refused = CliRunner().invoke(main, [*args, "--grid-command", bad])
+        assert refused.exit_code == 2 and "a grid command is VX,VY,YAW" in refused.output
+        assert repr(bad) in refused.output
+    alone = CliRunner().invoke(main, ["eval", str(path), "--grid-command", "0,0,0"])
+    assert alone.exit_code == 2 and "--grid-command gives the rows of a --grid" in alone.output
 
 
 def test_a_joystick_command_changes_within_an_episode_stands_on_purpose_and_resumes_exactly():

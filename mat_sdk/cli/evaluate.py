@@ -36,13 +36,19 @@ from mat_sdk.cli.common import fault_option, parse_settings, trust_option, user_
     "heading frame, the error, falls.",
 )  # fmt: skip
 @click.option(
+    "--grid-command", "grid_commands", multiple=True, metavar="VX,VY,YAW",
+    help="With --grid: hold this command (m/s, m/s, rad/s) instead of the joystick grid's; "
+    "repeat for more rows, e.g. --grid-command 0,0.2,0 --grid-command 0.2,0.2,0.",
+)  # fmt: skip
+@click.option(
     "--plot", type=click.Path(dir_okay=False),
     help="With --sweep or --grid: plot it to FILE.png.",
 )  # fmt: skip
 @trust_option()
 @user_errors
 def evaluate(
-    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, grid, plot
+    checkpoint, episodes, env_id, faults, stochastic, video, seed, env_options, sweep, grid,
+    grid_commands, plot,
 ) -> None:  # fmt: skip
     """Evaluate CHECKPOINT: mean +- std episode return (deterministic actions by default),
     episodes that ended early (a robot's fall), and a floating-base robot's forward speed.
@@ -58,6 +64,8 @@ def evaluate(
       mat eval runs/go2/checkpoint.pt --env-option 'command=[0.7,0,0]' --trust-env-code
       mat eval runs/go2/checkpoint.pt --sweep friction=0.4:1.2:5 --plot friction.png
       mat eval runs/go2/checkpoint.pt --grid --episodes 5 --plot tracking.png --trust-env-code
+      mat eval runs/go2/checkpoint.pt --grid --grid-command 0,0.3,0 --grid-command 0.2,0.3,0 \\
+          --episodes 2 --trust-env-code   # where does sideways walking start?
     """
     from mat_sdk.evaluation.episodes import CheckpointPolicy, evaluate_episodes
 
@@ -66,6 +74,8 @@ def evaluate(
         raise click.UsageError("--plot draws a sweep or a grid: give --sweep or --grid too")
     if sweep and grid:
         raise click.UsageError("--sweep and --grid are two reports: give one")
+    if grid_commands and not grid:
+        raise click.UsageError("--grid-command gives the rows of a --grid: give --grid too")
     options = parse_settings(env_options, param_hint="--env-option")
     if sweep or grid:
         given = {"--env": env_id, "--fault": faults, "--stochastic": stochastic, "--video": video}
@@ -76,7 +86,7 @@ def evaluate(
                     f"{report} evaluates the checkpoint's own robot; drop {name}"
                 )
         if grid:
-            _grid(loaded, plot, episodes, seed, options)
+            _grid(loaded, grid_commands, plot, episodes, seed, options)
         else:
             _sweep(loaded, sweep, plot, episodes, seed, options)
         return
@@ -112,12 +122,16 @@ def _sweep(loaded, sweep, plot, episodes, seed, options):
         click.echo(f"plot: {robustness.plot({'policy': [points]}, factor, plot)}")
 
 
-def _grid(loaded, plot, episodes, seed, options):
+def _grid(loaded, grid_commands, plot, episodes, seed, options):
     from mat_sdk.evaluation import tracking
 
     if "command" in options:
         raise click.UsageError("--grid sets the command itself, one per row; drop command=")
-    rows = tracking.track(loaded, tracking.JOYSTICK_GRID, episodes, seed, **options)
+    try:
+        commands = [tracking.parse_command(text) for text in grid_commands]
+    except ValueError as error:
+        raise click.BadParameter(str(error), param_hint="--grid-command") from None
+    rows = tracking.track(loaded, commands or tracking.JOYSTICK_GRID, episodes, seed, **options)
     click.echo(tracking.table(rows))
     if plot:
         click.echo(f"plot: {tracking.plot(rows, plot)}")
