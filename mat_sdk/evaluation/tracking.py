@@ -42,21 +42,17 @@ JOYSTICK_GRID: tuple[tuple[float, float, float], ...] = (
 
 def parse_command(text: str) -> tuple[float, float, float]:
     """'VX,VY,YAW' (m/s, m/s, rad/s) as a command of the grid: three finite numbers within
-    the commands' limit (`terms.VelocityCommand.LIMIT`)."""
+    the commands' limit (`terms.VelocityCommand.check`)."""
     from mat_sdk.envs.mujoco.terms import VelocityCommand
 
-    parts = text.split(",")
     try:
-        command = tuple(float(part) for part in parts)
+        command = VelocityCommand.check([float(part) for part in text.split(",")])
     except ValueError:
-        command = ()
-    limit = VelocityCommand.LIMIT
-    if len(command) != 3 or not all(np.isfinite(v) and abs(v) <= limit for v in command):
         raise ValueError(
-            f"a grid command is VX,VY,YAW: three numbers within +-{limit:g} (m/s, m/s, "
-            f"rad/s), e.g. 0.3,0,0.5; got {text[:60]!r}"
-        )
-    return command
+            f"a grid command is VX,VY,YAW: three numbers within +-{VelocityCommand.LIMIT:g} "
+            f"(m/s, m/s, rad/s), e.g. 0.3,0,0.5; got {text[:60]!r}"
+        ) from None
+    return tuple(float(v) for v in command)
 
 
 @dataclass

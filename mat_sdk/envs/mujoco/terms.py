@@ -196,8 +196,10 @@ class VelocityCommand:
             command[:] = 0.0
         return command
 
-    def check(self, command) -> np.ndarray:
-        """A fixed command given as an env option (evaluation at one speed): three numbers."""
+    @classmethod
+    def check(cls, command) -> np.ndarray:
+        """A fixed command given as an env option (evaluation at one speed), or a row of a
+        tracking grid: three finite numbers within `LIMIT`."""
         try:
             value = np.asarray(command, dtype=np.float64) if command is not None else None
         except (TypeError, ValueError):
@@ -206,11 +208,11 @@ class VelocityCommand:
             value is None
             or value.shape != (3,)
             or not np.isfinite(value).all()
-            or np.abs(value).max() > self.LIMIT
+            or np.abs(value).max() > cls.LIMIT
         ):
             raise ValueError(
-                f"command must be three finite numbers within +-{self.LIMIT:g} "
-                f"({', '.join(self.names)}), got {short(command)}"
+                f"command must be three finite numbers within +-{cls.LIMIT:g} "
+                f"({', '.join(cls.names)}), got {short(command)}"
             )
         return value
 
